@@ -1,0 +1,72 @@
+"""`fastenerf <command>`: parses arguments and calls library functions.
+
+Each command lives in `fastenerf/commands/<name>.py` with `HELP`, `add_arguments(parser)`
+and `run(args) -> int`; heavy imports (torch, warp, GL) happen inside `run` so that
+`--help` is instant. A `FastenerfError` is printed as one line and exits 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from .errors import FastenerfError
+
+COMMANDS = [
+    "synth",
+    "simulate",
+    "info",
+    "train",
+    "eval",
+    "render",
+    "mesh",
+    "view",
+    "bench",
+    "calibrate",
+    "import",
+    "demo",
+]
+
+
+def _module(name: str):
+    return importlib.import_module(f"fastenerf.commands.{name.replace('import', 'import_')}")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fastenerf",
+        description="Radiance fields from a single (colour) event camera, trained fast.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMANDS:
+        try:
+            mod = _module(name)
+        except ModuleNotFoundError as e:
+            if e.name != f"fastenerf.commands.{name.replace('import', 'import_')}":
+                raise
+            continue  # command not built yet
+        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
+        mod.add_arguments(p)
+        p.set_defaults(_run=mod.run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except FastenerfError as e:
+        print(f"fastenerf {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"fastenerf {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Interactive viewer (installed as `fastenerf.viewer`)."""
