@@ -1,0 +1,166 @@
+"""The native scene folder (DESIGN §6).
+
+```
+SCENE/
+  scene.json          SceneConfig
+  events.npz | .h5    x uint16, y uint16, t int64 µs, p int8 ±1, sorted by t
+  poses.npz           (timed trajectories) t (M,) int64 µs, c2w (M, 4, 4) float64
+  test/poses.npz      ground-truth views: t (V,) int64 µs, c2w (V, 4, 4)
+  test/rgb/NNNNNN.png display-space images (gamma 2.2 of linear intensity)
+```
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ...config import SceneConfig
+from ...errors import InputError
+from ...io import atomic_path, savez, write_image
+from ..events import EventStream
+
+EVENT_KEYS = ("x", "y", "t", "p")
+
+
+@dataclass
+class Scene:
+    """A loaded scene folder: config, events, and (if present) ground-truth test views."""
+
+    root: Path
+    config: SceneConfig
+    events: EventStream
+    test_t: np.ndarray | None = None  # (V,) int64 µs
+    test_c2w: np.ndarray | None = None  # (V, 4, 4) float64
+    test_rgb_paths: list[Path] | None = None
+
+    def load_test_images(self) -> np.ndarray:
+        """Ground-truth test views (V, H, W, 3) float32 in [0, 1], display space."""
+        import imageio.v3 as iio
+
+        if not self.test_rgb_paths:
+            raise InputError(f"{self.root}: no ground-truth test views (test/rgb/*.png)")
+        imgs = [iio.imread(p)[..., :3].astype(np.float32) / 255.0 for p in self.test_rgb_paths]
+        return np.stack(imgs)
+
+
+def read_events(path: str | Path, width: int, height: int) -> EventStream:
+    """Read `events.npz` or `events.h5` with one-line errors for every kind of damage."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: events file not found")
+    if path.suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                missing = [k for k in EVENT_KEYS if k not in z.files]
+                if missing:
+                    raise InputError(f"{path}: missing array(s) {missing} (needs x, y, t, p)")
+                arrays = {k: z[k] for k in EVENT_KEYS}
+        except InputError:
+            raise
+        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+            raise InputError(f"{path}: cannot read npz (truncated or corrupt: {e})") from None
+    elif path.suffix in (".h5", ".hdf5"):
+        import h5py
+
+        try:
+            with h5py.File(path, "r") as f:
+                g = f["events"] if "events" in f else f
+                missing = [k for k in EVENT_KEYS if k not in g]
+                if missing:
+                    raise InputError(f"{path}: missing dataset(s) {missing} (needs x, y, t, p)")
+                arrays = {k: g[k][()] for k in EVENT_KEYS}
+        except InputError:
+            raise
+        except (OSError, KeyError) as e:
+            raise InputError(f"{path}: cannot read HDF5 (truncated or corrupt: {e})") from None
+    else:
+        raise InputError(f"{path}: unknown events format (use .npz or .h5)")
+    return EventStream.from_arrays(**arrays, width=width, height=height, source=str(path))
+
+
+def write_events(path: str | Path, ev: EventStream) -> Path:
+    """Write events as native npz (or h5 by suffix), atomically."""
+    path = Path(path)
+    arrays = {"x": ev.x, "y": ev.y, "t": ev.t, "p": ev.p}
+    if path.suffix in (".h5", ".hdf5"):
+        import h5py
+
+        with atomic_path(path) as tmp:
+            with h5py.File(tmp, "w") as f:
+                for k, a in arrays.items():
+                    f.create_dataset(k, data=a, compression="gzip", compression_opts=1)
+        return path
+    return savez(path, compressed=True, **arrays)
+
+
+def load_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(t (M,) int64 µs, c2w (M, 4, 4) float64) from a poses npz, validated."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "t" not in z.files or "c2w" not in z.files:
+                raise InputError(f"{path}: poses file needs arrays 't' and 'c2w'")
+            t, c2w = z["t"], z["c2w"]
+    except InputError:
+        raise
+    except FileNotFoundError:
+        raise InputError(f"{path}: poses file not found") from None
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+        raise InputError(f"{path}: cannot read poses (truncated or corrupt: {e})") from None
+    if c2w.ndim != 3 or c2w.shape[1:] != (4, 4):
+        raise InputError(f"{path}: 'c2w' must be (M, 4, 4), got {c2w.shape}")
+    if t.shape != (len(c2w),):
+        raise InputError(f"{path}: {len(c2w)} poses but 't' has shape {t.shape}")
+    if not np.all(np.isfinite(c2w)):
+        i = int(np.flatnonzero(~np.isfinite(c2w).reshape(len(c2w), -1).all(1))[0])
+        raise InputError(f"{path}: pose {i} contains NaN or inf")
+    return t.astype(np.int64), c2w.astype(np.float64)
+
+
+def save_poses(path: str | Path, t: np.ndarray, c2w: np.ndarray) -> Path:
+    return savez(path, t=np.asarray(t, np.int64), c2w=np.asarray(c2w, np.float64))
+
+
+def load_scene(root: str | Path) -> Scene:
+    """Load a native scene folder (validating everything) or raise one clear `InputError`."""
+    root = Path(root)
+    if not root.exists():
+        raise InputError(f"{root}: no such scene folder")
+    cfg = SceneConfig.load(root)
+    events = read_events(root / cfg.events_file, cfg.width, cfg.height)
+    scene = Scene(root, cfg, events)
+    if cfg.trajectory.kind == "timed":
+        load_poses(root / cfg.trajectory.poses_file)  # validate early, with the file's name
+    test_poses = root / "test" / "poses.npz"
+    if test_poses.is_file():
+        scene.test_t, scene.test_c2w = load_poses(test_poses)
+        rgb = sorted((root / "test" / "rgb").glob("*.png"))
+        if rgb and len(rgb) != len(scene.test_c2w):
+            raise InputError(f"{root / 'test'}: {len(rgb)} images but {len(scene.test_c2w)} poses")
+        scene.test_rgb_paths = rgb or None
+    return scene
+
+
+def save_scene(root: str | Path, cfg: SceneConfig, events: EventStream,
+               test_t: np.ndarray | None = None, test_c2w: np.ndarray | None = None,
+               test_rgb: np.ndarray | None = None, poses: tuple | None = None) -> Path:
+    """Write a native scene folder into `root` (files written atomically).
+
+    test_rgb: (V, H, W, 3) float display space in [0, 1]; poses: (t, c2w) for timed scenes.
+    """
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    write_events(root / cfg.events_file, events)
+    if poses is not None:
+        save_poses(root / (cfg.trajectory.poses_file or "poses.npz"), *poses)
+    if test_c2w is not None:
+        save_poses(root / "test" / "poses.npz", test_t, test_c2w)
+        if test_rgb is not None:
+            for i, img in enumerate(test_rgb):
+                write_image(root / "test" / "rgb" / f"{i:06d}.png", img)
+    cfg.save(root / "scene.json")  # last: a folder with scene.json is complete
+    return root
