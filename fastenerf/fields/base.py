@@ -1,0 +1,53 @@
+"""The Field interface shared by the `ngp` and `vanilla` backends.
+
+A field owns its sampler (occupancy-grid marching for ngp, stratified + hierarchical for
+vanilla) because the two are inseparable from how each represents space; everything outside
+the field (losses, trainer, eval, viewer, mesh) sees only this interface.
+"""
+
+from __future__ import annotations
+
+from typing import TypedDict
+
+import torch
+
+
+class RenderOutput(TypedDict, total=False):
+    rgb: torch.Tensor  # (R, 3) display-space colour in [0, 1], composited over the background
+    depth: torch.Tensor  # (R,) expected distance along the unit ray, world units
+    opacity: torch.Tensor  # (R,) accumulated alpha in [0, 1]
+    distortion: torch.Tensor  # () mip-NeRF 360 distortion loss (mean over rays), when computed
+    n_samples: int  # samples evaluated by the field (for stats)
+
+
+class Field(torch.nn.Module):
+    """A radiance field over the scene box.
+
+    aabb: (6,) float32 buffer, world units [xmin, ymin, zmin, xmax, ymax, zmax].
+    """
+
+    backend: str = "base"
+
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        """Volume density σ ≥ 0, (N,) float32, 1/world units, at world points x: (N, 3)."""
+        raise NotImplementedError
+
+    def color(self, x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """Display-space colour (N, 3) in [0, 1] at points x (N, 3) seen along unit dirs d (N, 3)."""
+        raise NotImplementedError
+
+    def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, *, near: float,
+               background: torch.Tensor | None, train: bool) -> RenderOutput:
+        """Volume-render rays: rays_o (R, 3) world units, rays_d (R, 3) unit.
+
+        background: (3,) display-space colour composited behind the field, or None (black,
+        no background term). `train` turns on stochastic sampling and training-only extras.
+        """
+        raise NotImplementedError
+
+    def update(self, step: int) -> None:
+        """Per-step housekeeping (the ngp occupancy grid); a no-op by default."""
+
+    def config_dict(self) -> dict:
+        """The constructor arguments, saved in checkpoints so a run can rebuild its field."""
+        raise NotImplementedError
