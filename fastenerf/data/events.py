@@ -33,25 +33,51 @@ class EventStream:
     height: int
 
     @classmethod
-    def from_arrays(cls, x, y, t, p, width: int, height: int, source: str = "events",
-                    allow_empty: bool = False) -> EventStream:
-        """Validate and convert raw arrays; every problem is one line naming `source`.
+    def from_arrays(
+        cls,
+        x,
+        y,
+        t,
+        p,
+        width: int,
+        height: int,
+        source: str = "events",
+        allow_empty: bool = False,
+        lines: np.ndarray | None = None,
+    ) -> EventStream:
+        """Validate and convert raw arrays; every problem is one line naming `source` and where.
 
-        Polarity may be given as {-1, +1}, {0, 1} or bool; it is stored as ±1.
+        x, y: (N,) integer-valued pixel coordinates; t: (N,) integer-valued µs, non-negative,
+        non-decreasing; p: (N,) polarity as {-1, +1}, {0, 1} or bool, stored as ±1.
+        lines: optional (N,) line numbers of the events in a text source, so that messages
+        say "line 17" instead of "event 15".
         """
+
+        def at(i: int) -> str:
+            return f"line {int(lines[i])}" if lines is not None else f"event {i}"
+
         arrays = {"x": x, "y": y, "t": t, "p": p}
         arrays = {k: np.asarray(v) for k, v in arrays.items()}
-        n = len(arrays["t"])
         for k, a in arrays.items():
             if a.ndim != 1:
                 raise InputError(f"{source}: '{k}' must be one-dimensional, has shape {a.shape}")
+        n = len(arrays["t"])
+        for k, a in arrays.items():
             if len(a) != n:
                 raise InputError(f"{source}: '{k}' has {len(a)} entries but 't' has {n}")
-            if a.dtype.kind not in "iub f":
+            if a.dtype.kind not in "iubf":
                 raise InputError(f"{source}: '{k}' has non-numeric dtype {a.dtype}")
-            if a.dtype.kind == "f" and not np.all(np.isfinite(a)):
-                i = int(np.flatnonzero(~np.isfinite(a))[0])
-                raise InputError(f"{source}: '{k}' is NaN or inf at event {i}")
+            if a.dtype.kind == "f":
+                bad = ~np.isfinite(a)
+                if bad.any():
+                    raise InputError(f"{source}: '{k}' is NaN or inf at {at(int(np.argmax(bad)))}")
+                frac = a != np.round(a)
+                if k != "p" and frac.any():
+                    i = int(np.argmax(frac))
+                    raise InputError(
+                        f"{source}: '{k}' = {a[i]} at {at(i)} is not an integer"
+                        + (" (t must be integer microseconds)" if k == "t" else "")
+                    )
         if n == 0 and not allow_empty:
             raise InputError(f"{source}: the stream has no events")
         if width <= 0 or height <= 0 or width > 65535 or height > 65535:
@@ -59,35 +85,33 @@ class EventStream:
         xs, ys, ts, ps = arrays["x"], arrays["y"], arrays["t"], arrays["p"]
         for k, a, lim in (("x", xs, width), ("y", ys, height)):
             if n and (a.min() < 0 or a.max() >= lim):
-                i = int(np.flatnonzero((a < 0) | (a >= lim))[0])
+                i = int(np.argmax((a < 0) | (a >= lim)))
                 raise InputError(
-                    f"{source}: event {i} has {k}={a[i]} outside the {width}x{height} sensor"
+                    f"{source}: {k}={a[i]} at {at(i)} is outside the {width}x{height} sensor"
                 )
-            if a.dtype.kind == "f" and np.any(a != np.round(a)):
-                raise InputError(f"{source}: '{k}' has non-integer coordinates")
-        if ts.dtype.kind == "f" and np.any(ts != np.round(ts)):
-            raise InputError(f"{source}: 't' must be integer microseconds (got fractions)")
+        if n and ts.max() > _T_MAX:  # int64 µs overflow (also catches absurd float times)
+            i = int(np.argmax(ts > _T_MAX))
+            raise InputError(f"{source}: timestamp {ts[i]} at {at(i)} is out of range")
         ts = ts.astype(np.int64)
-        if n and ts[0] < 0:
-            raise InputError(f"{source}: negative timestamp {ts[0]} at event 0")
+        if n and ts.min() < 0:
+            i = int(np.argmax(ts < 0))
+            raise InputError(f"{source}: negative timestamp {ts[i]} at {at(i)}")
         if n > 1:
-            back = np.flatnonzero(np.diff(ts) < 0)
-            if len(back):
-                i = int(back[0]) + 1
+            back = np.diff(ts) < 0
+            if back.any():
+                i = int(np.argmax(back)) + 1
                 raise InputError(
-                    f"{source}: timestamps are not sorted (event {i} at t={ts[i]} comes after "
+                    f"{source}: timestamps are not sorted ({at(i)} at t={ts[i]} comes after "
                     f"t={ts[i - 1]})"
                 )
-        pv = ps.astype(np.int64) if ps.dtype != bool else ps.astype(np.int64)
-        values = set(np.unique(pv).tolist()) if n else set()
-        if values <= {-1, 1}:
-            p8 = pv.astype(np.int8)
-        elif values <= {0, 1}:
-            p8 = (2 * pv - 1).astype(np.int8)
-        else:
-            bad = sorted(values - {-1, 0, 1})[:3]
-            raise InputError(f"{source}: polarity must be ±1 or 0/1, found {bad}")
-        return cls(xs.astype(np.uint16), ys.astype(np.uint16), ts, p8, int(width), int(height))
+        return cls(
+            xs.astype(np.uint16),
+            ys.astype(np.uint16),
+            ts,
+            _polarity(ps, source, at),
+            int(width),
+            int(height),
+        )
 
     def __len__(self) -> int:
         return len(self.t)
@@ -99,8 +123,9 @@ class EventStream:
     def slice_time(self, t0: int, t1: int) -> EventStream:
         """Events with t0 <= t < t1 (a view, no copy)."""
         i0, i1 = np.searchsorted(self.t, [t0, t1], side="left")
-        return EventStream(self.x[i0:i1], self.y[i0:i1], self.t[i0:i1], self.p[i0:i1],
-                           self.width, self.height)
+        return EventStream(
+            self.x[i0:i1], self.y[i0:i1], self.t[i0:i1], self.p[i0:i1], self.width, self.height
+        )
 
     def stats(self) -> dict:
         """Summary numbers for `fastenerf info`."""
@@ -116,8 +141,11 @@ class EventStream:
             "duration_s": dur * 1e-6,
             "rate_ev_per_s": n / (dur * 1e-6) if dur > 0 else None,
             "positive_fraction": float((self.p > 0).mean()) if n else None,
-            "busiest_pixel": {"x": busiest % self.width, "y": busiest // self.width,
-                              "events": int(counts[busiest]) if n else 0},
+            "busiest_pixel": {
+                "x": busiest % self.width,
+                "y": busiest // self.width,
+                "events": int(counts[busiest]) if n else 0,
+            },
             "active_pixels": int((counts > 0).sum()),
         }
 
@@ -133,16 +161,26 @@ class EventIndex:
     sum is exact however long the stream.
 
     Loop streams: a window that starts before the stream's start `t_start` wraps to its end
-    (period `t_end - t_start`): E(t0, t1] = E(t0 + P, t_end] + E(t_start, t1].
+    (period P = `t_end - t_start`): E(t0, t1] = E(t0 + P, min(t1 + P, t_end)] + E[t_start, t1]
+    (events at exactly t_start count in wrapped windows; windows are shorter than P).
     """
 
-    def __init__(self, stream: EventStream, pos_threshold: float, neg_threshold: float | None = None,
-                 polarity_offset: float = 0.0, t_start: int | None = None,
-                 t_end: int | None = None, loop: bool = False):
+    def __init__(
+        self,
+        stream: EventStream,
+        pos_threshold: float,
+        neg_threshold: float | None = None,
+        polarity_offset: float = 0.0,
+        t_start: int | None = None,
+        t_end: int | None = None,
+        loop: bool = False,
+    ):
         self.width, self.height = stream.width, stream.height
         self.pos_threshold = float(pos_threshold)
         self.neg_threshold = float(pos_threshold if neg_threshold is None else neg_threshold)
         self.polarity_offset = float(polarity_offset)
+        if len(stream) == 0 and (t_start is None or t_end is None):
+            raise InputError("EventIndex: an empty stream needs explicit t_start and t_end")
         self.t_start = int(stream.t[0] if t_start is None else t_start)
         self.t_end = int(stream.t[-1] if t_end is None else t_end)
         self.loop = loop
@@ -165,7 +203,10 @@ class EventIndex:
     def weights(self, n: np.ndarray, n_pos: np.ndarray) -> np.ndarray:
         """E from counts: n_pos·(1+off)·C_pos + (n−n_pos)·(off−1)·C_neg, float32."""
         off = self.polarity_offset
-        e = n_pos * (1.0 + off) * self.pos_threshold + (n - n_pos) * (off - 1.0) * self.neg_threshold
+        e = (
+            n_pos * (1.0 + off) * self.pos_threshold
+            + (n - n_pos) * (off - 1.0) * self.neg_threshold
+        )
         return np.asarray(e, dtype=np.float32)
 
     def counts(self, pix, t0, t1) -> tuple[np.ndarray, np.ndarray]:
@@ -190,11 +231,12 @@ class EventIndex:
         wraps = (t0 < self.t_start) & self.loop
         t0a = np.where(wraps, self.t_start - 1, t0)  # (t_start - 1, t1] includes t_start
         t0b = np.where(wraps, t0 + self.period, self.t_end)
-        t1b = np.where(wraps, self.t_end, self.t_end)
+        # t1 + P, not t_end: a window that ends before t_start (or has t0 = t1) stays short.
+        t1b = np.where(wraps, np.minimum(t1 + self.period, self.t_end), self.t_end)
         return t0a, t1, t0b, t1b
 
     def query(self, pix, t0, t1) -> np.ndarray:
-        """E(u; t0, t1] for flat pixels `pix` (B,) int, windows t0, t1 (B,) int64 µs -> (B,) float32."""
+        """E(u; t0, t1] for flat pixels `pix` (B,), windows t0, t1 (B,) int64 µs -> (B,) float32."""
         t0a, t1a, t0b, t1b = self.split_wrapped(t0, t1)
         n, n_pos = self.counts(pix, t0a, t1a)
         if self.loop:
@@ -230,8 +272,29 @@ class EventIndex:
         }
 
 
-def _segment_searchsorted(values: np.ndarray, offsets: np.ndarray, seg: np.ndarray,
-                          q: np.ndarray) -> np.ndarray:
+_T_MAX = 2**62  # µs: ~146,000 years; leaves int64 headroom for window arithmetic
+
+
+def _polarity(p: np.ndarray, source: str, at) -> np.ndarray:
+    """Polarity as int8 ±1 from {-1, +1}, {0, 1} or bool; anything else is an InputError."""
+    if p.dtype == bool:
+        return np.where(p, 1, -1).astype(np.int8)
+    if not len(p):
+        return p.astype(np.int8)
+    pos, neg, zero = p == 1, p == -1, p == 0
+    bad = ~(pos | neg | zero)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise InputError(f"{source}: polarity {p[i]} at {at(i)} is not -1/+1 or 0/1")
+    if neg.any() and zero.any():  # {-1, 0, 1}: 0 means neither convention
+        i = max(int(np.argmax(neg)), int(np.argmax(zero)))
+        raise InputError(f"{source}: polarity mixes -1 and 0 (at {at(i)}); use -1/+1 or 0/1")
+    return np.where(pos, 1, -1).astype(np.int8)
+
+
+def _segment_searchsorted(
+    values: np.ndarray, offsets: np.ndarray, seg: np.ndarray, q: np.ndarray
+) -> np.ndarray:
     """For each query, the first index in values[offsets[s]:offsets[s+1]] with value > q.
 
     Vectorised bisection over all queries at once: O(B log n) without a Python loop per query.

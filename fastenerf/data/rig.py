@@ -22,7 +22,12 @@ BAYER_RGGB = np.array([[0, 1], [1, 2]], dtype=np.int64)
 
 @dataclass(frozen=True)
 class Intrinsics:
-    """Pinhole intrinsics in pixels with radial distortion (k1, k2)."""
+    """Pinhole intrinsics in pixels with radial distortion (k1, k2).
+
+    `model` (see `IntrinsicsConfig`): "opencv" x_d = x_u (1 + k1 r_u² + k2 r_u⁴), or
+    "eventnerf" x_u = x_d / (1 + k1 r_d² + k2 r_d⁴), on normalised coordinates. Each model has
+    one closed-form direction; the other is solved by Newton's method on the radius.
+    """
 
     fx: float
     fy: float
@@ -32,10 +37,11 @@ class Intrinsics:
     height: int
     k1: float = 0.0
     k2: float = 0.0
+    model: str = "opencv"
 
     @classmethod
     def from_config(cls, c: IntrinsicsConfig, width: int, height: int) -> Intrinsics:
-        return cls(c.fx, c.fy, c.cx, c.cy, width, height, c.k1, c.k2)
+        return cls(c.fx, c.fy, c.cx, c.cy, width, height, c.k1, c.k2, c.distortion_model)
 
     @property
     def distorted(self) -> bool:
@@ -49,32 +55,71 @@ class Intrinsics:
         """Intrinsics for the image resized by factor `s` (e.g. 0.5 halves each side)."""
         w, h = max(1, round(self.width * s)), max(1, round(self.height * s))
         sx, sy = w / self.width, h / self.height
-        return Intrinsics(self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, w, h,
-                          self.k1, self.k2)
+        return Intrinsics(
+            self.fx * sx,
+            self.fy * sy,
+            self.cx * sx,
+            self.cy * sy,
+            w,
+            h,
+            self.k1,
+            self.k2,
+            self.model,
+        )
+
+    def _factor(self, r2: np.ndarray) -> np.ndarray:
+        return 1.0 + self.k1 * r2 + self.k2 * r2**2
 
     def distort(self, xy: np.ndarray) -> np.ndarray:
         """Normalised undistorted (N, 2) -> normalised distorted (N, 2)."""
-        r2 = (xy**2).sum(-1, keepdims=True)
-        return xy * (1.0 + self.k1 * r2 + self.k2 * r2**2)
+        xy = np.asarray(xy, dtype=np.float64)
+        if self.model == "opencv":
+            return xy * self._factor((xy**2).sum(-1, keepdims=True))
+        return self._solve_radius(xy, inverse_of_division=True)
 
-    def undistort(self, xy_d: np.ndarray, iters: int = 20) -> np.ndarray:
-        """Normalised distorted (N, 2) -> undistorted, by fixed-point iteration (as OpenCV)."""
-        xy = xy_d.copy()
+    def undistort(self, xy_d: np.ndarray) -> np.ndarray:
+        """Normalised distorted (N, 2) -> normalised undistorted (N, 2)."""
+        xy_d = np.asarray(xy_d, dtype=np.float64)
+        if self.model == "eventnerf":
+            return xy_d / self._factor((xy_d**2).sum(-1, keepdims=True))
+        return self._solve_radius(xy_d, inverse_of_division=False)
+
+    def _solve_radius(self, xy: np.ndarray, inverse_of_division: bool, iters: int = 30):
+        """Invert the closed-form direction radially by Newton's method on a = |result|.
+
+        opencv undistort: solve a (1 + k1 a² + k2 a⁴) = b;  eventnerf distort: solve
+        a / (1 + k1 a² + k2 a⁴) = b, where b = |xy|. The direction of xy is unchanged.
+        """
+        k1, k2 = self.k1, self.k2
+        b = np.sqrt((xy**2).sum(-1))
+        a = b.copy()
         for _ in range(iters):
-            r2 = (xy**2).sum(-1, keepdims=True)
-            xy = xy_d / (1.0 + self.k1 * r2 + self.k2 * r2**2)
-        return xy
+            a2 = a * a
+            d = 1.0 + k1 * a2 + k2 * a2 * a2
+            if inverse_of_division:
+                h, dh = a / d - b, (1.0 - k1 * a2 - 3.0 * k2 * a2 * a2) / (d * d)
+            else:
+                h, dh = a * d - b, 1.0 + 3.0 * k1 * a2 + 5.0 * k2 * a2 * a2
+            a = a - h / np.where(np.abs(dh) > 1e-12, dh, 1e-12)
+        scale = np.where(b > 0, a / np.where(b > 0, b, 1.0), 1.0)
+        return xy * scale[..., None]
 
     def pixel_to_camera(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Pixel coordinates (N,) each (pixel centres are at +0.5) -> camera ray dirs (N, 3), z=1."""
-        xy = np.stack([(np.asarray(u, np.float64) - self.cx) / self.fx,
-                       (np.asarray(v, np.float64) - self.cy) / self.fy], -1)
+        """Pixel coordinates u, v (N,) each (centres at +0.5) -> camera ray dirs (N, 3), z = 1."""
+        xy = np.stack(
+            [
+                (np.asarray(u, np.float64) - self.cx) / self.fx,
+                (np.asarray(v, np.float64) - self.cy) / self.fy,
+            ],
+            -1,
+        )
         if self.distorted:
             xy = self.undistort(xy)
         return np.concatenate([xy, np.ones_like(xy[:, :1])], -1)
 
     def project(self, p_cam: np.ndarray) -> np.ndarray:
         """Camera-frame points (N, 3), z > 0 -> pixel coordinates (N, 2)."""
+        p_cam = np.asarray(p_cam, dtype=np.float64)
         xy = p_cam[:, :2] / p_cam[:, 2:3]
         if self.distorted:
             xy = self.distort(xy)
@@ -85,22 +130,28 @@ class TimedPoses:
     """pose(t) from timed samples: rotation slerp, translation lerp; clamped at the ends."""
 
     def __init__(self, t_us: np.ndarray, c2w: np.ndarray, source: str = "poses"):
+        """t_us: (M,) strictly increasing µs; c2w: (M, 4, 4) or (M, 3, 4) camera-to-world."""
         t_us = np.asarray(t_us)
         c2w = np.asarray(c2w, dtype=np.float64)
         if c2w.ndim != 3 or c2w.shape[1:] not in ((4, 4), (3, 4)):
             raise InputError(f"{source}: poses must be (M, 4, 4) or (M, 3, 4), got {c2w.shape}")
-        if len(t_us) != len(c2w):
-            raise InputError(f"{source}: {len(c2w)} poses but {len(t_us)} timestamps")
+        if t_us.ndim != 1 or len(t_us) != len(c2w):
+            raise InputError(f"{source}: {len(c2w)} poses but timestamps of shape {t_us.shape}")
         if len(c2w) == 0:
             raise InputError(f"{source}: no poses")
+        if t_us.dtype.kind not in "iuf" or not np.all(np.isfinite(t_us)):
+            raise InputError(f"{source}: pose timestamps must be finite numbers (µs)")
         if not np.all(np.isfinite(c2w)):
             i = int(np.flatnonzero(~np.isfinite(c2w).reshape(len(c2w), -1).all(1))[0])
             raise InputError(f"{source}: pose {i} contains NaN or inf")
         if np.any(np.diff(t_us) <= 0):
-            raise InputError(f"{source}: pose timestamps must increase strictly")
+            i = int(np.argmax(np.diff(t_us) <= 0)) + 1
+            raise InputError(f"{source}: pose timestamps must increase strictly (pose {i})")
         R = c2w[:, :3, :3]
-        if np.abs(np.einsum("nij,nik->njk", R, R) - np.eye(3)).max() > 1e-3:
-            raise InputError(f"{source}: a pose's rotation is not orthonormal")
+        err = np.abs(np.einsum("nij,nik->njk", R, R) - np.eye(3)).max((1, 2))
+        if err.max() > 1e-3 or np.any(np.linalg.det(R) < 0):
+            i = int(np.argmax((err > 1e-3) | (np.linalg.det(R) < 0)))
+            raise InputError(f"{source}: pose {i} is not a rotation (orthonormal, det +1)")
         self.t = t_us.astype(np.int64)
         self.quat = _matrix_to_quat(R)
         self.trans = c2w[:, :3, 3].copy()
@@ -141,8 +192,12 @@ class Turntable:
         c = self.cfg
         th = self.angle(t_us)
         el = np.deg2rad(c.elevation_deg)
-        p = np.stack([np.sin(th) * np.cos(el), np.full_like(th, np.sin(el)),
-                      np.cos(th) * np.cos(el)], -1) * c.radius
+        p = (
+            np.stack(
+                [np.sin(th) * np.cos(el), np.full_like(th, np.sin(el)), np.cos(th) * np.cos(el)], -1
+            )
+            * c.radius
+        )
         tilt = _rot_x(np.deg2rad(c.tilt_deg))
         center = np.asarray(c.center, dtype=np.float64)
         eye = p @ tilt.T + center
@@ -165,28 +220,50 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Rig:
-    """Intrinsics + trajectory + colour filter of one capture."""
+    """Intrinsics + trajectory + colour filter of one capture.
+
+    On a closed loop (`loop_period_us` set) a time before `loop_start_us` is one period
+    later, pose(t) = pose(t + P), the same wrap as `EventIndex` applies to windows.
+    """
 
     intrinsics: Intrinsics
     trajectory: TimedPoses | Turntable
     bayer: str | None
+    loop_start_us: int | None = None
+    loop_period_us: int | None = None
 
     @classmethod
-    def from_scene(cls, cfg: SceneConfig, folder: str | Path | None = None) -> Rig:
+    def from_scene(
+        cls,
+        cfg: SceneConfig,
+        folder: str | Path | None = None,
+        poses: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> Rig:
+        """The rig of a scene; a "timed" trajectory takes `poses` = (t (M,) µs, c2w (M, 4, 4))
+        when given (poses held in memory, e.g. read from an EventNeRF folder), otherwise
+        reads `cfg.trajectory.poses_file` under `folder`."""
         intr = Intrinsics.from_config(cfg.intrinsics, cfg.width, cfg.height)
         tr = cfg.trajectory
         if tr.kind == "timed":
-            path = Path(folder or ".") / tr.poses_file
-            from .formats.native import load_poses
+            if poses is not None:
+                traj = TimedPoses(*poses, source=f"{cfg.name}: poses")
+            else:
+                path = Path(folder or ".") / tr.poses_file
+                from .formats.native import load_poses
 
-            t, c2w = load_poses(path)
-            traj = TimedPoses(t, c2w, source=str(path))
+                t, c2w = load_poses(path)
+                traj = TimedPoses(t, c2w, source=str(path))
         else:
             traj = Turntable(tr)
+        if cfg.loop:
+            return cls(intr, traj, cfg.bayer, cfg.t_start_us, cfg.t_end_us - cfg.t_start_us)
         return cls(intr, traj, cfg.bayer)
 
     def pose(self, t_us) -> np.ndarray:
         """Camera-to-world (N, 4, 4) float64 at times (N,) µs."""
+        if self.loop_period_us is not None:
+            t = np.atleast_1d(np.asarray(t_us))
+            t_us = np.where(t < self.loop_start_us, t + self.loop_period_us, t)
         return self.trajectory(t_us)
 
     def channel(self, pix: np.ndarray | torch.Tensor):
@@ -194,9 +271,11 @@ class Rig:
         if self.bayer is None:
             return None
         w = self.intrinsics.width
-        lib = torch if isinstance(pix, torch.Tensor) else np
+        if isinstance(pix, torch.Tensor):
+            table = torch.as_tensor(BAYER_RGGB, device=pix.device)
+        else:
+            pix, table = np.asarray(pix, dtype=np.int64), BAYER_RGGB
         y, x = pix // w, pix % w
-        table = BAYER_RGGB if lib is np else torch.as_tensor(BAYER_RGGB, device=pix.device)
         return table[y % 2, x % 2]
 
     def rays(self, pix: np.ndarray, c2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,9 +314,10 @@ def _matrix_to_quat(R: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     q = Rotation.from_matrix(R).as_quat()[:, [3, 0, 1, 2]]
-    for i in range(1, len(q)):  # keep neighbours in one hemisphere so slerp takes the short way
-        if np.dot(q[i], q[i - 1]) < 0:
-            q[i] = -q[i]
+    # Keep neighbours in one hemisphere so slerp takes the short way: flipping q[i] flips its
+    # dot with q[i+1] too, so the signs to apply are the running product of the dot signs.
+    flip = np.where((q[1:] * q[:-1]).sum(-1) < 0, -1.0, 1.0)
+    q[1:] *= np.cumprod(flip)[:, None]
     return q
 
 

@@ -4,6 +4,7 @@
 SCENE/
   scene.json          SceneConfig
   events.npz | .h5    x uint16, y uint16, t int64 µs, p int8 ±1, sorted by t
+                      (+ width, height of the sensor, optional)
   poses.npz           (timed trajectories) t (M,) int64 µs, c2w (M, 4, 4) float64
   test/poses.npz      ground-truth views: t (V,) int64 µs, c2w (V, 4, 4)
   test/rgb/NNNNNN.png display-space images (gamma 2.2 of linear intensity)
@@ -13,6 +14,7 @@ SCENE/
 from __future__ import annotations
 
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,11 +26,17 @@ from ...io import atomic_path, savez, write_image
 from ..events import EventStream
 
 EVENT_KEYS = ("x", "y", "t", "p")
+SIZE_KEYS = ("width", "height")  # optional, in files written by `write_events`
 
 
 @dataclass
 class Scene:
-    """A loaded scene folder: config, events, and (if present) ground-truth test views."""
+    """A loaded scene: config, events, and (if present) ground-truth test views.
+
+    poses: the timed trajectory held in memory, (t (M,) int64 µs, c2w (M, 4, 4) float64),
+    or None for a turntable; readers of foreign layouts (EventNeRF folders) fill it instead
+    of writing a poses file into the user's dataset.
+    """
 
     root: Path
     config: SceneConfig
@@ -36,6 +44,13 @@ class Scene:
     test_t: np.ndarray | None = None  # (V,) int64 µs
     test_c2w: np.ndarray | None = None  # (V, 4, 4) float64
     test_rgb_paths: list[Path] | None = None
+    poses: tuple[np.ndarray, np.ndarray] | None = None
+
+    def rig(self):
+        """The scene's `Rig` (intrinsics, pose(t), Bayer), from the in-memory poses if any."""
+        from ..rig import Rig
+
+        return Rig.from_scene(self.config, self.root, self.poses)
 
     def load_test_images(self) -> np.ndarray:
         """Ground-truth test views (V, H, W, 3) float32 in [0, 1], display space."""
@@ -43,12 +58,17 @@ class Scene:
 
         if not self.test_rgb_paths:
             raise InputError(f"{self.root}: no ground-truth test views (test/rgb/*.png)")
-        imgs = [iio.imread(p)[..., :3].astype(np.float32) / 255.0 for p in self.test_rgb_paths]
+        imgs = []
+        for p in self.test_rgb_paths:
+            img = iio.imread(p)
+            img = np.repeat(img[..., None], 3, -1) if img.ndim == 2 else img[..., :3]
+            imgs.append(img.astype(np.float32) / (65535.0 if img.dtype == np.uint16 else 255.0))
         return np.stack(imgs)
 
 
-def read_events(path: str | Path, width: int, height: int) -> EventStream:
-    """Read `events.npz` or `events.h5` with one-line errors for every kind of damage."""
+def read_event_arrays(path: str | Path) -> dict[str, np.ndarray]:
+    """Raw arrays x, y, t, p of an `.npz` or `.h5` events file (not yet validated), plus
+    `width`/`height` (0-d) when the file stores them; one-line errors for damaged files."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: events file not found")
@@ -58,12 +78,12 @@ def read_events(path: str | Path, width: int, height: int) -> EventStream:
                 missing = [k for k in EVENT_KEYS if k not in z.files]
                 if missing:
                     raise InputError(f"{path}: missing array(s) {missing} (needs x, y, t, p)")
-                arrays = {k: z[k] for k in EVENT_KEYS}
+                return {k: z[k] for k in (*EVENT_KEYS, *SIZE_KEYS) if k in z.files}
         except InputError:
             raise
-        except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
+        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as e:
             raise InputError(f"{path}: cannot read npz (truncated or corrupt: {e})") from None
-    elif path.suffix in (".h5", ".hdf5"):
+    if path.suffix in (".h5", ".hdf5"):
         import h5py
 
         try:
@@ -72,13 +92,27 @@ def read_events(path: str | Path, width: int, height: int) -> EventStream:
                 missing = [k for k in EVENT_KEYS if k not in g]
                 if missing:
                     raise InputError(f"{path}: missing dataset(s) {missing} (needs x, y, t, p)")
-                arrays = {k: g[k][()] for k in EVENT_KEYS}
+                out = {k: g[k][()] for k in EVENT_KEYS}
+                out.update({k: np.asarray(g.attrs[k]) for k in SIZE_KEYS if k in g.attrs})
+                return out
         except InputError:
             raise
-        except (OSError, KeyError) as e:
+        except (OSError, KeyError, ValueError) as e:
             raise InputError(f"{path}: cannot read HDF5 (truncated or corrupt: {e})") from None
-    else:
-        raise InputError(f"{path}: unknown events format (use .npz or .h5)")
+    raise InputError(f"{path}: unknown events format (use .npz or .h5)")
+
+
+def read_events(path: str | Path, width: int, height: int) -> EventStream:
+    """Read `events.npz` or `events.h5` with one-line errors for every kind of damage."""
+    arrays = read_event_arrays(path)
+    if "width" in arrays and "height" in arrays:
+        stored = (int(arrays["width"]), int(arrays["height"]))
+        if stored != (width, height):
+            raise InputError(
+                f"{path}: events of a {stored[0]}x{stored[1]} sensor, but the scene "
+                f"says {width}x{height}"
+            )
+    arrays = {k: arrays[k] for k in EVENT_KEYS}
     return EventStream.from_arrays(**arrays, width=width, height=height, source=str(path))
 
 
@@ -93,8 +127,10 @@ def write_events(path: str | Path, ev: EventStream) -> Path:
             with h5py.File(tmp, "w") as f:
                 for k, a in arrays.items():
                     f.create_dataset(k, data=a, compression="gzip", compression_opts=1)
+                f.attrs["width"], f.attrs["height"] = ev.width, ev.height
         return path
-    return savez(path, compressed=True, **arrays)
+    size = {"width": np.int64(ev.width), "height": np.int64(ev.height)}
+    return savez(path, compressed=True, **arrays, **size)
 
 
 def load_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -115,6 +151,8 @@ def load_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         raise InputError(f"{path}: 'c2w' must be (M, 4, 4), got {c2w.shape}")
     if t.shape != (len(c2w),):
         raise InputError(f"{path}: {len(c2w)} poses but 't' has shape {t.shape}")
+    if t.dtype.kind not in "iuf" or (t.dtype.kind == "f" and not np.all(np.isfinite(t))):
+        raise InputError(f"{path}: 't' must be finite numbers (µs), got dtype {t.dtype}")
     if not np.all(np.isfinite(c2w)):
         i = int(np.flatnonzero(~np.isfinite(c2w).reshape(len(c2w), -1).all(1))[0])
         raise InputError(f"{path}: pose {i} contains NaN or inf")
@@ -134,7 +172,7 @@ def load_scene(root: str | Path) -> Scene:
     events = read_events(root / cfg.events_file, cfg.width, cfg.height)
     scene = Scene(root, cfg, events)
     if cfg.trajectory.kind == "timed":
-        load_poses(root / cfg.trajectory.poses_file)  # validate early, with the file's name
+        scene.poses = load_poses(root / cfg.trajectory.poses_file)
     test_poses = root / "test" / "poses.npz"
     if test_poses.is_file():
         scene.test_t, scene.test_c2w = load_poses(test_poses)
@@ -145,9 +183,15 @@ def load_scene(root: str | Path) -> Scene:
     return scene
 
 
-def save_scene(root: str | Path, cfg: SceneConfig, events: EventStream,
-               test_t: np.ndarray | None = None, test_c2w: np.ndarray | None = None,
-               test_rgb: np.ndarray | None = None, poses: tuple | None = None) -> Path:
+def save_scene(
+    root: str | Path,
+    cfg: SceneConfig,
+    events: EventStream,
+    test_t: np.ndarray | None = None,
+    test_c2w: np.ndarray | None = None,
+    test_rgb: np.ndarray | None = None,
+    poses: tuple | None = None,
+) -> Path:
     """Write a native scene folder into `root` (files written atomically).
 
     test_rgb: (V, H, W, 3) float display space in [0, 1]; poses: (t, c2w) for timed scenes.

@@ -1,0 +1,487 @@
+"""The EventNeRF authors' dataset folders (DESIGN §9): read as released, written for their code.
+
+```
+SCENE/<split>/                 split: train, validation, test
+  events/<one file>.npz        x, y int pixels; t (see below); p ±1 (0/1 accepted)
+  pose/r_NNNNN.txt             4x4 camera-to-world (OpenCV axes), one file per view
+  intrinsics/r_NNNNN.txt       4x4 K = [fx 0 cx 0; 0 fy cy 0; 0 0 1 0; 0 0 0 1], optionally a
+                               5th row "k1 k2 0 0" (their rays: x_u = x_d / (1 + k1 r_d² + k2 r_d⁴),
+                               kept exactly as distortion_model "eventnerf")
+  rgb/r_NNNNN.png              one per view: ground truth or a placeholder (their loader
+                               enumerates the views by these files; real scenes hold placeholders)
+SCENE/fastenerf_scene.json     only in folders written by `export_eventnerf`: our SceneConfig
+```
+Sensor 346x260 (their loader hard-codes it). Views are files sorted by name, as theirs are.
+
+Time, as their `data_loader_split.py` uses it: with M views and τ_max = max(t), view i sits at
+τ_i = i/(M-1)·τ_max, and the window that ends at view i and spans w views holds the events with
+τ_{i-w} <= τ < τ_i (half-open on the left). Cycled (real) configs wrap windows that start
+before 0 to the end of the stream. The unit of t is not stored: synthetic scenes hold the frame
+index (integers 0..M-1, rendered at 1000 fps, so 1 unit = 1000 µs), real ones a float
+timestamp. We detect it (`time_unit=None`): integers with max = M-1 -> "frame"; floats below
+1e5 -> seconds; anything else -> µs; pass `time_unit` to override. Events are read as
+t_us = round(τ·unit) + 1 and views placed at T_i = round(τ_i·unit): the extra 1 µs turns their
+[τ_a, τ_b) into our (T_a, T_b] (DESIGN §3) exactly, so every window holds the same events as
+theirs. (One difference remains on cycled scenes: events at exactly τ_max enter their wrapped
+windows but lie after our t_end; that is the stream's last event or, on synthetic data, which
+they never cycle, the last frame.)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ...config import IntrinsicsConfig, SceneConfig, TrajectoryConfig
+from ...errors import InputError
+from ...io import atomic_dir, write_json
+from ..events import EventStream
+from ..rig import Intrinsics
+from .native import Scene, read_event_arrays
+
+SENSOR = (346, 260)
+SPLITS = ("train", "validation", "test")
+META_FILE = "fastenerf_scene.json"
+TIME_UNITS_US = {"frame": 1000.0, "s": 1e6, "ms": 1e3, "us": 1.0}
+REAL_BACKGROUND = [159 / 255] * 3  # their real configs composite over sRGB 159 (DESIGN §9)
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+
+
+def is_eventnerf_folder(path: str | Path) -> bool:
+    """True for a scene folder in the authors' layout (has train/events/)."""
+    return (Path(path) / "train" / "events").is_dir()
+
+
+def load_eventnerf(
+    root: str | Path,
+    split: str = "train",
+    *,
+    test_split: str | None = "auto",
+    time_unit: str | None = None,
+    sensor: tuple[int, int] | None = None,
+) -> Scene:
+    """Read one EventNeRF scene folder into a `Scene` (nothing is written into `root`).
+
+    split: the split whose events and views make the stream (their training split is "train").
+    test_split: where ground-truth test views come from: "auto" takes "test", then "validation",
+      if its rgb/ images are real images (not one constant placeholder) and the scene is not a
+      real capture (their real rgb/ files are placeholders); None for no test views.
+    time_unit: "frame" (1000 µs), "s", "ms" or "us" per unit of the file's t; None detects it.
+    sensor: (width, height); None: our export record's size if present, else 346x260.
+    Returns a Scene whose config has a "timed" trajectory, the poses in `Scene.poses`
+    (t (M,) int64 µs, c2w (M, 4, 4)), events in µs (see the module docstring for the mapping).
+    """
+    root = Path(root)
+    if not (root / split).is_dir():
+        raise InputError(
+            f"{root}: no '{split}' folder (an EventNeRF scene has "
+            f"{'/'.join(SPLITS)} folders with events/, pose/, intrinsics/, rgb/)"
+        )
+    meta = _read_meta(root)
+    views = _read_views(root / split, require_events=True)
+    n = len(views["c2w"])
+    if n < 2:
+        raise InputError(f"{root / split / 'pose'}: needs at least 2 views, found {n}")
+    raw = read_event_arrays(views["events"])
+    tau = np.asarray(raw["t"])
+    src = str(views["events"])
+    if tau.ndim != 1 or tau.dtype.kind not in "iuf" or len(tau) == 0:
+        raise InputError(f"{src}: 't' must be a non-empty 1-D numeric array")
+    if tau.dtype.kind == "f" and not np.all(np.isfinite(tau)):
+        raise InputError(f"{src}: 't' is NaN or inf at event {int(np.argmax(~np.isfinite(tau)))}")
+
+    unit = time_unit or (meta or {}).get("time_unit") or _detect_time_unit(tau, n)
+    if unit not in TIME_UNITS_US:
+        raise InputError(f"{src}: unknown time unit {unit!r} (one of {list(TIME_UNITS_US)})")
+    scale = TIME_UNITS_US[unit]
+    origin = int((meta or {}).get("t_origin_us", 0))
+    tau_max = float(tau.max())
+    t_us = np.round(tau.astype(np.float64) * scale).astype(np.int64) + 1 + origin
+    width, height = sensor or (
+        (meta["scene"]["width"], meta["scene"]["height"]) if meta else SENSOR
+    )
+    events = EventStream.from_arrays(raw["x"], raw["y"], t_us, raw["p"], width, height, src)
+
+    span_us = tau_max * scale
+    t_views = origin + np.round(np.arange(n) / (n - 1) * span_us).astype(np.int64)
+    if np.any(np.diff(t_views) <= 0):
+        raise InputError(
+            f"{src}: the stream ({span_us:.0f} µs) is too short for {n} views "
+            "at distinct microseconds"
+        )
+    kind = "synthetic" if unit == "frame" else "real"
+    cfg = _scene_config(root, meta, views, kind, width, height, t_views)
+    scene = Scene(root, cfg, events, poses=(t_views, views["c2w"]))
+    _attach_test_views(scene, root, split, test_split, views, meta, kind)
+    return scene
+
+
+def export_eventnerf(
+    scene: Scene, out_dir: str | Path, n_views: int | None = None, *, strict_sensor: bool = False
+) -> Path:
+    """Write `scene` as an EventNeRF folder (train, validation, test) that their code can load.
+
+    n_views: training views, uniform in time over the stream (default: config.n_views).
+    Events outside (t_start, t_end] lie in no window and are left out; t is written as float64
+    seconds since t_start (minus the 1 µs of the (a, b] -> [a, b) shift), and view i is posed
+    at their time i/(n-1)·max(t), so their windows hold exactly our events. Intrinsics with
+    OpenCV distortion are converted to their model by a least-squares fit over the sensor
+    (the worst pixel error of the fit is stored in fastenerf_scene.json; a warning above
+    0.1 px). validation/ and test/ hold the scene's test views with their ground truth (at
+    least 3 views, as their validation logging needs), otherwise every 10th training view
+    with placeholder images; each split gets (a hard link to) the events file, which their
+    loader requires. The folder is built beside `out_dir` and renamed into place.
+    Their loader hard-codes a 346x260 sensor: another size is written with a warning (our
+    `load_eventnerf` reads it back at its size from the record), or refused if `strict_sensor`.
+    """
+    cfg = scene.config
+    if (cfg.width, cfg.height) != SENSOR:
+        msg = (
+            f"{scene.root}: sensor {cfg.width}x{cfg.height} is not the 346x260 that the "
+            "EventNeRF authors' loader hard-codes"
+        )
+        if strict_sensor:
+            raise InputError(msg)
+        warnings.warn(msg + "; their code cannot read this folder", stacklevel=2)
+    n = int(n_views or cfg.n_views)
+    if n < 3:
+        raise InputError(f"export_eventnerf: needs at least 3 views, got {n}")
+    ev = scene.events
+    t0 = cfg.t_start_us
+    keep = (ev.t > t0) & (ev.t <= cfg.t_end_us)
+    if not keep.any():
+        raise InputError(f"{scene.root}: no events in ({t0}, {cfg.t_end_us}] µs to export")
+    tau_us = ev.t[keep] - 1 - t0  # >= 0: our (a, b] is their [a - 1, b - 1)
+    tau_max = int(tau_us.max())
+    t_views = t0 + np.arange(n) / (n - 1) * tau_max  # float µs: exactly their view times
+    rig = scene.rig()
+    c2w = rig.pose(t_views)
+    K, fit_px = _eventnerf_intrinsics(rig.intrinsics)
+    if fit_px > 0.1:
+        warnings.warn(
+            f"export_eventnerf: OpenCV distortion fits their model only to {fit_px:.2f} px",
+            stacklevel=2,
+        )
+
+    if scene.test_c2w is not None and len(scene.test_c2w) >= 3:
+        test_c2w, test_rgb, test_t = scene.test_c2w, scene.test_rgb_paths, scene.test_t
+    else:
+        idx = np.arange(0, n, 10) if n >= 30 else np.linspace(0, n - 1, 3).astype(int)
+        test_c2w, test_rgb, test_t = c2w[idx], None, np.round(t_views[idx]).astype(np.int64)
+    out_dir = Path(out_dir)
+    placeholder = _placeholder_png(cfg.width, cfg.height)
+    with atomic_dir(out_dir) as tmp:
+        train = tmp / "train"
+        events_file = train / "events" / "events.npz"
+        events_file.parent.mkdir(parents=True)
+        np.savez_compressed(
+            events_file,
+            x=ev.x[keep],
+            y=ev.y[keep],
+            t=tau_us.astype(np.float64) * 1e-6,
+            p=ev.p[keep],
+        )
+        _write_views(train, c2w, K, [None] * n, placeholder)
+        for split in ("validation", "test"):
+            _write_views(tmp / split, test_c2w, K, test_rgb or [None] * len(test_c2w), placeholder)
+            _link_or_copy(events_file, tmp / split / "events" / "events.npz")
+        write_json(
+            tmp / META_FILE,
+            {
+                "scene": cfg.to_dict(),
+                "time_unit": "s",
+                "t_origin_us": t0,
+                "written_intrinsics": K.tolist(),
+                "distortion_fit_max_px": fit_px,
+                "test_t_us": None if test_t is None else np.asarray(test_t).tolist(),
+            },
+        )
+    return out_dir
+
+
+# ---------------------------------------------------------------------------- reading
+
+
+def _detect_time_unit(tau: np.ndarray, n_views: int) -> str:
+    integral = tau.dtype.kind in "iu" or bool(np.all(tau == np.round(tau)))
+    if integral and tau.min() >= 0 and tau.max() == n_views - 1:
+        return "frame"  # synthetic: t is the frame index, one frame per view at 1000 fps
+    if tau.dtype.kind == "f" and tau.max() < 1e5:
+        return "s"
+    return "us"
+
+
+def _read_meta(root: Path) -> dict | None:
+    path = root / META_FILE
+    if not path.is_file():
+        return None
+    try:
+        meta = json.loads(path.read_text())
+        SceneConfig.from_dict(meta["scene"], str(path))
+    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, TypeError) as e:
+        raise InputError(f"{path}: not a valid fastenerf export record ({e})") from None
+    return meta
+
+
+def _listing(folder: Path, exts: tuple[str, ...]) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in exts)
+
+
+def _read_matrix(path: Path, rows: tuple[int, ...]) -> np.ndarray:
+    """A whitespace-separated matrix of 4 columns and one of `rows` rows, float64."""
+    try:
+        vals = np.array([float(v) for v in path.read_text().split()], dtype=np.float64)
+    except (ValueError, UnicodeDecodeError, OSError) as e:
+        raise InputError(f"{path}: not a matrix of numbers ({e})") from None
+    for r in rows:
+        if len(vals) == 4 * r:
+            if not np.all(np.isfinite(vals)):
+                raise InputError(f"{path}: contains NaN or inf")
+            return vals.reshape(r, 4)
+    shapes = " or ".join(f"{r}x4" for r in rows)
+    raise InputError(
+        f"{path}: expected a {shapes} matrix ({' or '.join(str(4 * r) for r in rows)}"
+        f" numbers), found {len(vals)} numbers"
+    )
+
+
+def _read_views(split_dir: Path, require_events: bool) -> dict:
+    """Poses (M, 4, 4), the one shared intrinsics (5, 4), rgb paths and the events file."""
+    pose_files = _listing(split_dir / "pose", (".txt",))
+    intr_files = _listing(split_dir / "intrinsics", (".txt",))
+    rgb_files = _listing(split_dir / "rgb", IMAGE_EXTS)
+    if not pose_files:
+        raise InputError(f"{split_dir / 'pose'}: no pose files (*.txt)")
+    if len(intr_files) != len(pose_files):
+        raise InputError(
+            f"{split_dir}: {len(pose_files)} pose files but {len(intr_files)} "
+            "intrinsics files (one of each per view)"
+        )
+    if rgb_files and len(rgb_files) != len(pose_files):
+        raise InputError(
+            f"{split_dir}: {len(pose_files)} pose files but {len(rgb_files)} "
+            "rgb images (one per view)"
+        )
+    c2w = np.stack([_read_matrix(p, (4,)) for p in pose_files])
+    _check_poses(c2w, pose_files)
+    intr = None
+    for p in intr_files:
+        m = _read_matrix(p, (4, 5))
+        m = np.concatenate([m, np.zeros((1, 4))]) if len(m) == 4 else m
+        if intr is None:
+            _check_intrinsics(m, p)
+            intr, first = m, p
+        elif not np.allclose(
+            m[[0, 0, 1, 1, 4, 4], [0, 2, 1, 2, 0, 1]],
+            intr[[0, 0, 1, 1, 4, 4], [0, 2, 1, 2, 0, 1]],
+            rtol=1e-6,
+            atol=1e-9,
+        ):
+            raise InputError(
+                f"{p}: intrinsics differ from {first.name} (fastenerf supports one "
+                "camera per scene)"
+            )
+    events = _listing(split_dir / "events", (".npz",))
+    if require_events and len(events) != 1:
+        raise InputError(
+            f"{split_dir / 'events'}: needs exactly one .npz events file, found {len(events)}"
+        )
+    return {
+        "c2w": c2w,
+        "intrinsics": intr,
+        "rgb": rgb_files,
+        "events": events[0] if events else None,
+        "pose_files": pose_files,
+    }
+
+
+def _check_poses(c2w: np.ndarray, files: list[Path]) -> None:
+    R = c2w[:, :3, :3]
+    err = np.abs(np.einsum("nij,nik->njk", R, R) - np.eye(3)).max((1, 2))
+    bottom = np.abs(c2w[:, 3] - [0, 0, 0, 1]).max(1)
+    bad = (err > 1e-3) | (np.linalg.det(R) < 0) | (bottom > 1e-6)
+    if bad.any():
+        raise InputError(
+            f"{files[int(np.argmax(bad))]}: not a rigid camera-to-world matrix "
+            "(rotation must be orthonormal with det +1, last row 0 0 0 1)"
+        )
+
+
+def _check_intrinsics(m: np.ndarray, path: Path) -> None:
+    fx, fy = m[0, 0], m[1, 1]
+    if fx <= 0 or fy <= 0:
+        raise InputError(f"{path}: focal lengths must be positive (fx={fx}, fy={fy})")
+    if (
+        abs(m[0, 1]) > 1e-9 * fx
+        or abs(m[1, 0]) > 1e-9 * fy
+        or np.abs(m[2, :3] - [0, 0, 1]).max() > 1e-9
+    ):
+        raise InputError(f"{path}: K must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)")
+
+
+def _is_placeholder(path: Path) -> bool:
+    """A constant image stands for "no ground truth" (what `export_eventnerf` writes)."""
+    import imageio.v3 as iio
+
+    try:
+        img = iio.imread(path)
+    except Exception as e:  # imageio raises many types for damaged files
+        raise InputError(f"{path}: cannot read image ({e})") from None
+    return bool(img.min() == img.max())
+
+
+def _scene_config(
+    root: Path,
+    meta: dict | None,
+    views: dict,
+    kind: str,
+    width: int,
+    height: int,
+    t_views: np.ndarray,
+) -> SceneConfig:
+    m = views["intrinsics"]
+    intr = IntrinsicsConfig(
+        fx=float(m[0, 0]),
+        fy=float(m[1, 1]),
+        cx=float(m[0, 2]),
+        cy=float(m[1, 2]),
+        k1=float(m[4, 0]),
+        k2=float(m[4, 1]),
+        distortion_model="eventnerf",
+    )
+    if meta is not None:  # our own export: restore what the layout cannot hold
+        cfg = SceneConfig.from_dict(meta["scene"], str(root / META_FILE))
+        written = np.zeros((5, 4))
+        w = np.asarray(meta.get("written_intrinsics", np.zeros((0, 4))), dtype=np.float64)
+        written[: len(w)] = w
+        if not np.allclose(written, m, rtol=1e-12, atol=0.0):
+            cfg.intrinsics = intr  # the files were edited since the export: they win
+        keep_span = cfg.t_start_us <= t_views[0] and cfg.t_end_us >= t_views[-1]
+    else:
+        real = kind == "real"
+        cfg = SceneConfig(
+            name=root.name,
+            width=width,
+            height=height,
+            intrinsics=intr,
+            trajectory=TrajectoryConfig(kind="timed"),
+            bayer="rggb",
+            pos_threshold=0.1 if real else 0.25,
+            neg_threshold=0.1 if real else 0.25,
+            loop=real,
+            background=REAL_BACKGROUND if real else [0.0, 0.0, 0.0],
+            kind=kind,
+        )
+        keep_span = False
+    cfg.width, cfg.height = width, height
+    cfg.trajectory = TrajectoryConfig(kind="timed", poses_file="poses.npz")
+    if not keep_span:  # (an export's own span keeps its loop period exactly)
+        cfg.t_start_us, cfg.t_end_us = int(t_views[0]), int(t_views[-1])
+    cfg.n_views = len(t_views)
+    return cfg.validate(str(root))
+
+
+def _attach_test_views(
+    scene: Scene,
+    root: Path,
+    split: str,
+    test_split: str | None,
+    train: dict,
+    meta: dict | None,
+    kind: str,
+) -> None:
+    if test_split is None:
+        return
+    if test_split == "auto":
+        candidates = [] if kind == "real" and meta is None else ["test", "validation"]
+    else:
+        if not (root / test_split).is_dir():
+            raise InputError(f"{root}: no '{test_split}' split for test views")
+        candidates = [test_split]
+    for name in candidates:
+        if name == split or not (root / name).is_dir():
+            continue
+        views = _read_views(root / name, require_events=False)
+        if not views["rgb"] or _is_placeholder(views["rgb"][0]):
+            if test_split != "auto":
+                raise InputError(f"{root / name / 'rgb'}: no ground-truth images")
+            continue
+        if not np.allclose(views["intrinsics"], train["intrinsics"], rtol=1e-6, atol=1e-9):
+            raise InputError(f"{root / name / 'intrinsics'}: differ from the '{split}' split's")
+        v = len(views["c2w"])
+        t_meta = (meta or {}).get("test_t_us")
+        if t_meta is not None and len(t_meta) == v:
+            test_t = np.asarray(t_meta, dtype=np.int64)
+        else:  # their test views carry no time: nominal, uniform over the stream
+            cfg = scene.config
+            test_t = np.round(np.linspace(cfg.t_start_us, cfg.t_end_us, v)).astype(np.int64)
+        scene.test_t, scene.test_c2w, scene.test_rgb_paths = test_t, views["c2w"], views["rgb"]
+        return
+
+
+# ---------------------------------------------------------------------------- writing
+
+
+def _eventnerf_intrinsics(intr: Intrinsics) -> tuple[np.ndarray, float]:
+    """Their 4x4 (or 5x4 with k1 k2) matrix for `intr`, and the fit's worst error in pixels."""
+    K = np.eye(4)
+    K[0, 0], K[1, 1], K[0, 2], K[1, 2] = intr.fx, intr.fy, intr.cx, intr.cy
+    if not intr.distorted:
+        return K, 0.0
+    if intr.model == "eventnerf":
+        k1, k2, err = intr.k1, intr.k2, 0.0
+    else:
+        k1, k2, err = _fit_division_model(intr)
+    return np.concatenate([K, [[k1, k2, 0.0, 0.0]]]), err
+
+
+def _fit_division_model(intr: Intrinsics) -> tuple[float, float, float]:
+    """(k1, k2) of x_u = x_d / (1 + k1 r_d² + k2 r_d⁴) closest to OpenCV `intr` over the
+    sensor's distorted radii, by linear least squares; and the worst error in pixels."""
+    corners_u = np.array([0.0, intr.width]) - intr.cx
+    corners_v = np.array([0.0, intr.height]) - intr.cy
+    r_max = np.hypot(np.abs(corners_u).max() / intr.fx, np.abs(corners_v).max() / intr.fy)
+    rd = np.linspace(0.0, r_max, 512)[1:]
+    ru = intr.undistort(np.stack([rd, np.zeros_like(rd)], -1))[:, 0]
+    A = np.stack([rd**2, rd**4], -1)
+    (k1, k2), *_ = np.linalg.lstsq(A, rd / ru - 1.0, rcond=None)
+    ru_fit = rd / (1.0 + k1 * rd**2 + k2 * rd**4)
+    return float(k1), float(k2), float(np.abs(ru_fit - ru).max() * max(intr.fx, intr.fy))
+
+
+def _placeholder_png(width: int, height: int) -> bytes:
+    import imageio.v3 as iio
+
+    return iio.imwrite("<bytes>", np.zeros((height, width, 3), np.uint8), extension=".png")
+
+
+def _write_matrix(path: Path, m: np.ndarray) -> None:
+    path.write_text("\n".join(" ".join(f"{v:.17g}" for v in row) for row in m) + "\n")
+
+
+def _write_views(split_dir: Path, c2w: np.ndarray, K: np.ndarray, rgb: list, placeholder: bytes):
+    for sub in ("pose", "intrinsics", "rgb"):
+        (split_dir / sub).mkdir(parents=True, exist_ok=True)
+    for i, (pose, src) in enumerate(zip(c2w, rgb, strict=True)):
+        name = f"r_{i:05d}"
+        _write_matrix(split_dir / "pose" / f"{name}.txt", pose)
+        _write_matrix(split_dir / "intrinsics" / f"{name}.txt", K)
+        if src is None:
+            (split_dir / "rgb" / f"{name}.png").write_bytes(placeholder)
+        else:
+            shutil.copyfile(src, split_dir / "rgb" / f"{name}{Path(src).suffix.lower()}")
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)

@@ -1,0 +1,62 @@
+"""Shared fixtures: small random event streams and scene configs (real arrays, real files)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fastenerf.config import IntrinsicsConfig, SceneConfig, TrajectoryConfig
+from fastenerf.data.events import EventStream
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(20240611)
+
+
+@pytest.fixture
+def random_stream(rng):
+    """make(n, width, height, t_max, t_min=1) -> EventStream with random pixels, polarities
+    and sorted integer µs times drawn with replacement (so timestamps repeat)."""
+
+    def make(
+        n: int = 2000, width: int = 16, height: int = 12, t_max: int = 100_000, t_min: int = 1
+    ) -> EventStream:
+        t = np.sort(rng.integers(t_min, t_max + 1, n))
+        return EventStream.from_arrays(
+            rng.integers(0, width, n),
+            rng.integers(0, height, n),
+            t,
+            rng.choice([-1, 1], n),
+            width,
+            height,
+            source="random",
+        )
+
+    return make
+
+
+@pytest.fixture
+def scene_config():
+    """make(width, height, **overrides) -> SceneConfig: a turntable scene, 1 s loop, RGGB."""
+
+    def make(width: int = 346, height: int = 260, **overrides) -> SceneConfig:
+        kw = dict(
+            name="test-scene",
+            width=width,
+            height=height,
+            intrinsics=IntrinsicsConfig(
+                fx=0.9 * width, fy=0.9 * width, cx=width / 2, cy=height / 2
+            ),
+            trajectory=TrajectoryConfig(
+                kind="turntable", radius=3.0, tilt_deg=2.0, elevation_deg=10.0, period_us=1_000_000
+            ),
+            t_start_us=0,
+            t_end_us=1_000_000,
+            n_views=100,
+            loop=True,
+        )
+        kw.update(overrides)
+        return SceneConfig(**kw).validate()
+
+    return make
