@@ -32,6 +32,7 @@ setup(
         "torch>=2.1",
         "warp-lang>=1.5",
         "numpy>=1.24",
+        "scipy>=1.10",
         "trimesh>=4.0",
         "moderngl>=5.8",
         "imgui-bundle>=1.5",
