@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+from collections import OrderedDict
 
 import torch
 import warp as wp
@@ -11,7 +12,7 @@ import warp as wp
 @functools.cache
 def init() -> None:
     """Initialise Warp once, quietly."""
-    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING  # no banner, no per-module load lines
     wp.init()
 
 
@@ -36,3 +37,70 @@ def stream_of(t: torch.Tensor):
     if t.device.type != "cuda":
         return None
     return wp.stream_from_torch(torch.cuda.current_stream(t.device))
+
+
+# ---------------------------------------------------------------------------------------------
+# Low-overhead launching (the hot path calls these once per op; wp.from_torch, wp.launch and
+# wp.stream_from_torch cost tens of microseconds of Python each).
+
+_VIEWS: OrderedDict = OrderedDict()
+_STREAMS: dict = {}
+
+
+def fast_view(t: torch.Tensor, dtype=None) -> wp.array:
+    """Warp view of tensor t (any strides; dtype a scalar or vector type over its last dim).
+
+    Views are plain (pointer, shape, strides) descriptors, so one cached per key is safe to
+    reuse for any tensor with the same storage address and geometry.
+    """
+    key = (t.data_ptr(), t.shape, t.stride(), t.dtype, dtype, t.device)
+    a = _VIEWS.get(key)
+    if a is None:
+        init()
+        a = wp.from_torch(t, dtype=dtype)
+        a = wp.array(
+            ptr=a.ptr, dtype=a.dtype, shape=a.shape, strides=a.strides, device=a.device, copy=False
+        )  # drops from_torch's reference to t
+        _VIEWS[key] = a
+        if len(_VIEWS) > 256:
+            _VIEWS.popitem(last=False)
+    return a
+
+
+def fast_stream(t: torch.Tensor):
+    """Warp stream for torch's current stream on t's device (None on CPU), cached."""
+    if t.device.type != "cuda":
+        return None
+    ts = torch.cuda.current_stream(t.device)
+    key = (t.device.index, ts.cuda_stream)
+    s = _STREAMS.get(key)
+    if s is None:
+        s = _STREAMS[key] = stream_of(t)
+    return s
+
+
+@functools.cache
+def launcher(kernel) -> Launcher:
+    """The process-wide Launcher of a kernel."""
+    return Launcher(kernel)
+
+
+class Launcher:
+    """Replays one kernel through a recorded `wp.Launch` (about half of wp.launch's cost)."""
+
+    def __init__(self, kernel):
+        self.kernel = kernel
+        self._cmds = {}
+
+    def __call__(self, dim: int, t: torch.Tensor, args: list):
+        """Launch over dim threads on t's device and current stream with args (Warp values)."""
+        device = device_of(t)
+        cmd = self._cmds.get(device)
+        if cmd is None:
+            cmd = wp.launch(self.kernel, dim=dim, inputs=args, device=device, record_cmd=True)
+            self._cmds[device] = cmd
+        else:
+            for i, a in enumerate(args):
+                cmd.set_param_at_index(i, a)
+            cmd.set_dim(dim)
+        cmd.launch(fast_stream(t))

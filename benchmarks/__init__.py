@@ -1,0 +1,1 @@
+"""Benchmarks (DESIGN §8): kernels vs plain PyTorch, error vs time."""

@@ -1,0 +1,242 @@
+"""Hash-grid Warp kernels vs an independent float64 PyTorch reference (DESIGN §4, §5)."""
+
+import itertools
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from fastenerf.kernels.hashgrid import (
+    HashGridConfig,
+    _alloc_out,
+    _launch_forward,
+    _Variant,
+    grid_indices,
+    hash_grid_encode,
+    init_table,
+)
+
+P1, P2, M32 = 2654435761, 805459861, 0xFFFFFFFF
+
+SMALL = HashGridConfig(
+    n_levels=6, n_features=2, log2_table_size=10, base_resolution=4, max_resolution=96
+)
+
+
+def ref_layout(cfg):
+    """(resolution, dense?, size) per level, from DESIGN §4 and the documented convention."""
+    L, n0, n1, T = cfg.n_levels, cfg.base_resolution, cfg.max_resolution, 2**cfg.log2_table_size
+    b = math.exp((math.log(n1) - math.log(n0)) / (L - 1)) if L > 1 else 1.0
+    out = []
+    for lv in range(L):
+        n = int(math.floor(n0 * b**lv + 1e-9))
+        dense = (n + 1) ** 3 <= T
+        out.append((n, dense, math.ceil((n + 1) ** 3 / 8) * 8 if dense else T))  # 8-row padding
+    return out
+
+
+def ref_encode(x, table, cfg):
+    """float64 reference: clamp, pos = x * N, trilinear over the 8 corners, own hash."""
+    feats, off = [], 0
+    T = 2**cfg.log2_table_size
+    for n, dense, size in ref_layout(cfg):
+        p = x.clamp(0.0, 1.0) * n
+        c = torch.floor(p).clamp(0, n - 1).detach()
+        f = p - c
+        c = c.long()
+        acc = 0.0
+        for corner in itertools.product((0, 1), repeat=3):
+            v = c + torch.tensor(corner)
+            if dense:
+                idx = v[:, 0] + (n + 1) * (v[:, 1] + (n + 1) * v[:, 2])
+            else:
+                idx = (v[:, 0] ^ ((v[:, 1] * P1) & M32) ^ ((v[:, 2] * P2) & M32)) & (T - 1)
+            w = torch.ones_like(f[:, 0])
+            for d in range(3):
+                w = w * (f[:, d] if corner[d] else 1.0 - f[:, d])
+            acc = acc + w[:, None] * table[off + idx]
+        feats.append(acc)
+        off += size
+    assert off == table.shape[0]
+    return torch.cat(feats, 1)
+
+
+def random_points(n, cfg, gen):
+    """Uniform points plus points on cell boundaries of every level and on the box faces."""
+    x = torch.rand(n, 3, generator=gen)
+    res = [r for r, _, _ in ref_layout(cfg)]
+    k = torch.randint(0, 10**6, (n // 2, 3), generator=gen)
+    lv = torch.randint(0, len(res), (n // 2, 1), generator=gen)
+    nl = torch.tensor(res)[lv]
+    x_b = (
+        (k % (nl + 1)).double() / nl
+    ).float()  # on a vertex plane of some level (to float32 rounding)
+    faces = torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 1.0, 0.5], [1.0, 0.25, 0.0]])
+    return torch.cat([x, x_b, faces])
+
+
+def test_layout_matches_design():
+    cfg = HashGridConfig()
+    lay = ref_layout(cfg)
+    assert cfg.resolutions == tuple(r for r, _, _ in lay)
+    assert cfg.resolutions[0] == 16 and cfg.resolutions[-1] == 2048
+    assert cfg.hashed == tuple(not d for _, d, _ in lay)
+    assert cfg.hashed[:5] == (False,) * 5 and all(cfg.hashed[5:])
+    assert cfg.level_offsets == tuple(np.concatenate([[0], np.cumsum([s for *_, s in lay])]))
+    assert init_table(cfg).shape == (cfg.n_params, 2)
+    t = init_table(SMALL)
+    assert t.abs().max() <= 1e-4 and t.std() > 1e-5
+
+
+def test_hash_matches_numpy_uint32():
+    cfg = HashGridConfig(n_levels=2, log2_table_size=13, base_resolution=64, max_resolution=4096)
+    assert cfg.hashed == (True, True)
+    ijk = np.random.randint(0, 2**16, size=(4096, 3)).astype(np.int32)
+    ijk[:4] = [[0, 0, 0], [65535, 65535, 65535], [1, 0, 0], [0, 1, 1]]
+    u = ijk.astype(np.uint32)
+    h = (u[:, 0] * np.uint32(1)) ^ (u[:, 1] * np.uint32(P1)) ^ (u[:, 2] * np.uint32(P2))
+    for level in (0, 1):
+        want = (h & np.uint32(cfg.table_size - 1)).astype(np.int64) + cfg.level_offsets[level]
+        got = grid_indices(torch.from_numpy(ijk), level, cfg).numpy()
+        np.testing.assert_array_equal(got, want)
+
+
+def test_dense_hashed_switch_at_exact_fit():
+    # (15 + 1)^3 = 4096 = T: level 0 fits exactly and is dense; level 1 (N = 30) is hashed.
+    cfg = HashGridConfig(n_levels=2, log2_table_size=12, base_resolution=15, max_resolution=30)
+    assert cfg.resolutions == (15, 30) and cfg.hashed == (False, True)
+    assert cfg.level_sizes == (4096, 4096)
+    v = torch.tensor(list(itertools.product(range(16), repeat=3)), dtype=torch.int32)
+    rows = grid_indices(v, 0, cfg)
+    assert torch.equal(torch.sort(rows).values, torch.arange(4096))  # bijection onto the slice
+    want = v[:, 0] + 16 * (v[:, 1] + 16 * v[:, 2])
+    assert torch.equal(rows, want.long())
+    rows1 = grid_indices(v, 1, cfg)
+    assert rows1.min() >= 4096 and rows1.max() < 8192
+    assert not torch.equal(rows1 - 4096, rows)  # hashed, not dense, indexing
+
+
+TINY_TABLE = HashGridConfig(
+    n_levels=4, n_features=2, log2_table_size=4, base_resolution=1, max_resolution=64
+)
+
+
+@pytest.mark.parametrize(
+    "cfg,variant",
+    [
+        (SMALL, _Variant()),  # 6 levels: the last 4-level backward group is partial
+        (TINY_TABLE, _Variant()),
+        (SMALL, _Variant(group=1, pairs=False)),
+    ],
+    ids=["small", "tiny_table_everything_collides", "ungrouped_unpaired"],
+)
+def test_forward_backward_vs_reference(cfg, variant):
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
+    x = random_points(1500, cfg, gen)
+    table = (torch.rand(cfg.n_params, cfg.n_features, generator=gen) * 2 - 1).float()
+
+    # Forward into a NaN-poisoned buffer: every element must be written.
+    storage = _alloc_out(x.shape[0], cfg, variant, "cpu").fill_(float("nan"))
+    out = _launch_forward(x, table, cfg, variant, storage)
+    assert out.shape == (x.shape[0], cfg.n_output_dims) and torch.isfinite(storage).all()
+
+    x64 = x.double().requires_grad_(True)
+    t64 = table.double().requires_grad_(True)
+    ref = ref_encode(x64, t64, cfg)
+    torch.testing.assert_close(out.double(), ref, atol=2e-5, rtol=0)
+
+    # Gradients w.r.t. the table (scatter with collisions) and x, for a random cotangent.
+    g = torch.randn(ref.shape, generator=gen, dtype=torch.float64)
+    (ref * g).sum().backward()
+    xt = x.clone().requires_grad_(True)
+    tt = table.clone().requires_grad_(True)
+    enc = hash_grid_encode(xt, tt, cfg, variant)
+    torch.testing.assert_close(enc.detach().double(), ref.detach(), atol=2e-5, rtol=0)
+    (enc * g.float()).sum().backward()
+    scale = t64.grad.abs().max().item()
+    torch.testing.assert_close(tt.grad.double(), t64.grad, atol=2e-5 * scale, rtol=1e-5)
+
+    # x-gradient only away from cell boundaries: the encoding has kinks there.
+    res = torch.tensor(cfg.resolutions, dtype=torch.float64)
+    frac = torch.frac(x.double()[:, None, :] * res[None, :, None])
+    interior = ((frac > 1e-3) & (frac < 1 - 1e-3)).all(2).all(1)
+    assert interior.sum() > 500
+    scale = x64.grad[interior].abs().max().item()
+    torch.testing.assert_close(
+        xt.grad[interior].double(), x64.grad[interior], atol=1e-4 * scale, rtol=1e-4
+    )
+
+
+def test_out_of_box_points_are_clamped_and_layout_variant_agrees():
+    cfg = SMALL
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
+    x = torch.rand(300, 3, generator=gen) * 2.0 - 0.5  # about half the coordinates outside
+    table = (torch.rand(cfg.n_params, 2, generator=gen) * 2 - 1).float()
+    xt = x.clone().requires_grad_(True)
+    enc = hash_grid_encode(xt, table, cfg)
+    enc.square().sum().backward()
+    x64 = x.double().requires_grad_(True)
+    ref = ref_encode(x64, table.double(), cfg)
+    ref.square().sum().backward()
+    torch.testing.assert_close(enc.detach().double(), ref.detach(), atol=2e-5, rtol=0)
+    outside = (x < 0) | (x > 1)
+    assert outside.any() and (xt.grad[outside] == 0).all()
+
+    # The other launch layout (point-major threads, point-major output, plain atomics).
+    v = _Variant(level_outer=False, feature_major=False, vector_red=False)
+    storage = _alloc_out(x.shape[0], cfg, v, "cpu").fill_(float("nan"))
+    out2 = _launch_forward(x, table, cfg, v, storage)
+    assert out2.is_contiguous()
+    torch.testing.assert_close(out2, enc.detach(), atol=0, rtol=0)
+
+
+def test_x_gradient_on_box_faces():
+    # On x = 0 / x = 1 the derivative is one-sided, from the cell inside the box.
+    cfg = SMALL
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
+    x = torch.rand(400, 3, generator=gen)
+    x[:200, 0] = 1.0
+    x[200:, 0] = 0.0
+    res = torch.tensor(cfg.resolutions, dtype=torch.float64)
+    frac = torch.frac(x.double()[:, None, 1:] * res[None, :, None])
+    x = x[((frac > 1e-3) & (frac < 1 - 1e-3)).all(2).all(1)]
+    table = (torch.rand(cfg.n_params, 2, generator=gen) * 2 - 1).float()
+    xt = x.clone().requires_grad_(True)
+    hash_grid_encode(xt, table, cfg).square().sum().backward()
+    x64 = x.double().requires_grad_(True)
+    ref_encode(x64, table.double(), cfg).square().sum().backward()
+    assert (x64.grad[:, 0] != 0).all()
+    scale = x64.grad.abs().max().item()
+    torch.testing.assert_close(xt.grad.double(), x64.grad, atol=1e-4 * scale, rtol=1e-4)
+
+
+def test_table_not_16_byte_aligned():
+    # A table that is a slice of a larger buffer (8-byte aligned only) takes the unpaired path.
+    cfg = SMALL
+    buf = torch.rand(cfg.n_params + 1, 2) * 2 - 1
+    table = buf[1:]
+    assert table.data_ptr() % 16 == 8
+    x = torch.rand(500, 3)
+    ref = ref_encode(x.double(), table.double(), cfg)
+    torch.testing.assert_close(hash_grid_encode(x, table, cfg).double(), ref, atol=2e-5, rtol=0)
+
+
+def test_rejects_bad_inputs():
+    t = init_table(SMALL)
+    with pytest.raises(ValueError, match="x must be"):
+        hash_grid_encode(torch.rand(4, 2), t, SMALL)
+    with pytest.raises(ValueError, match="table must be"):
+        hash_grid_encode(torch.rand(4, 3), t[:-1], SMALL)
+    assert hash_grid_encode(torch.rand(0, 3), t, SMALL).shape == (0, SMALL.n_output_dims)
+
+
+def test_benchmark_smoke_cpu():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ is not installed
+    from benchmarks.kernels_encoding import bench_hashgrid
+
+    r = bench_hashgrid(device="cpu", n_points=2**10, log2_T=10, repeats=2)
+    assert r["max_abs_err"] < 1e-5
+    for k in ("warp_fwd_ms", "warp_bwd_ms", "warp_fwdbwd_ms", "torch_fwdbwd_ms"):
+        assert r[k] > 0 and math.isfinite(r[k])
