@@ -57,7 +57,7 @@ def fast_view(t: torch.Tensor, dtype=None) -> wp.array:
     a = _VIEWS.get(key)
     if a is None:
         init()
-        a = wp.from_torch(t, dtype=dtype)
+        a = wp.from_torch(t, dtype=dtype, requires_grad=False)
         a = wp.array(
             ptr=a.ptr, dtype=a.dtype, shape=a.shape, strides=a.strides, device=a.device, copy=False
         )  # drops from_torch's reference to t

@@ -1,0 +1,301 @@
+"""The `ngp` backend: hash grid + SH + tiny MLP, occupancy-grid marching (DESIGN §4).
+
+Encoding, network, sampler and renderer stay separate as in instant-ngp:
+    x --hash_grid_encode--> density MLP --> (σ, geometry features)
+    d --sh_encode---------> colour MLP([geometry features, SH]) --> rgb
+    rays --march_rays (occupancy grid)--> packed samples --composite--> pixels
+Every heavy op is a Warp kernel from `fastenerf.kernels`; the MLPs are plain PyTorch
+(bf16 autocast on CUDA, set by the trainer). Only what the scene needs is built: the
+cylinder clip exists only when the scene sets one (in the density and in the grid).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..clip import clip_density
+from ..config import CylinderConfig, SceneConfig
+from ..errors import InputError
+from ..kernels.composite import composite, distortion_loss
+from ..kernels.hashgrid import HashGridConfig, hash_grid_encode, init_table
+from ..kernels.occupancy import OccupancyGrid
+from ..kernels.raymarch import march_rays
+from ..kernels.sh import sh_encode
+from .base import Field, RenderOutput
+
+
+@dataclass
+class NGPOptions:
+    """Accuracy/speed knobs of the ngp backend (`TrainConfig.backend_options`)."""
+
+    n_levels: int = 16
+    n_features: int = 2
+    log2_table_size: int = 19
+    base_resolution: int = 16
+    max_resolution: int = 2048  # N_max = 2048 · scale for a unit-sized box (DESIGN §4)
+    hidden: int = 64
+    geo_features: int = 15
+    grid_resolution: int = 128
+    cone_angle: float = 0.0  # 0: constant steps (objects); 1/256 for large scenes
+    dt_min: float | None = None  # None: √3/1024 · box size (DESIGN §4)
+    max_samples: int = 1024
+    density_threshold: float = 0.01
+    grid_decay: float = 0.95
+    update_every: int = 16
+    warmup_steps: int = 256
+    # The truncated exp: σ ≤ e^15 ≈ 3.3e6 (DESIGN §5's range), computed in float32 whatever the
+    # MLP's autocast dtype (e^15 would overflow fp16, whose max is 65504).
+    max_log_density: float = 15.0
+
+    @classmethod
+    def from_dict(cls, d: dict) -> NGPOptions:
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise InputError(f"unknown ngp backend option(s) {unknown}; known: {sorted(names)}")
+        return cls(**d)
+
+
+class _TruncExp(torch.autograd.Function):
+    """exp with a clamped argument, so σ and its gradient stay finite for huge logits.
+
+    Forward clamps at `hi` (σ bounded); torch-ngp's trunc_exp clamps only the gradient, so its σ
+    still overflows to inf. Backward passes the gradient at the clamp (e^hi · g) straight through
+    instead of the true 0 above it: a logit that overshot can still be pushed back down.
+    """
+
+    @staticmethod
+    def forward(ctx, x, hi: float):
+        xc = x.clamp(max=hi)
+        ctx.save_for_backward(xc)
+        return torch.exp(xc)
+
+    @staticmethod
+    def backward(ctx, g):
+        (xc,) = ctx.saved_tensors
+        return g * torch.exp(xc), None
+
+
+def trunc_exp(x: torch.Tensor, hi: float = 15.0) -> torch.Tensor:
+    """exp(min(x, hi)), same shape and dtype as x; gradient g · exp(min(x, hi)), finite for any
+    finite or infinite x (NaN stays NaN)."""
+    return _TruncExp.apply(x, hi)
+
+
+def _mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int) -> nn.Sequential:
+    # No biases, like tiny-cuda-nn's fully fused MLPs: the hash features carry the offsets.
+    layers: list[nn.Module] = []
+    d = n_in
+    for _ in range(n_hidden_layers):
+        layers += [nn.Linear(d, hidden, bias=False), nn.ReLU(inplace=True)]
+        d = hidden
+    layers.append(nn.Linear(d, n_out, bias=False))
+    return nn.Sequential(*layers)
+
+
+def _check_points(name: str, v: torch.Tensor, where: str) -> None:
+    """Reject what would corrupt the weights: a NaN point reaches the hash-grid backward as a
+    NaN gradient, and one NaN row poisons Adam's moments for good (DESIGN §5)."""
+    if v.ndim != 2 or v.shape[-1] != 3:
+        raise InputError(f"{where}: {name} must be (N, 3), got {tuple(v.shape)}")
+    bad = ~torch.isfinite(v).all(-1)
+    if bool(bad.any()):
+        raise InputError(
+            f"{where}: {name} has NaN or inf in {int(bad.sum())} of {len(v)} rows "
+            f"(first at row {int(bad.nonzero()[0, 0])})"
+        )
+
+
+class NGPField(Field):
+    """Hash-grid radiance field over `aabb` with an occupancy grid for empty-space skipping.
+
+    aabb: [xmin, ymin, zmin, xmax, ymax, zmax] world units; cylinder: optional density clip.
+    Everything handed to a Warp kernel is float32 whatever the module's dtype (`.double()`) or
+    autocast; the MLPs run in their parameters' dtype (or the autocast one); σ and colours come
+    out float32.
+    """
+
+    backend = "ngp"
+
+    def __init__(
+        self,
+        aabb,
+        options: NGPOptions | None = None,
+        cylinder: CylinderConfig | None = None,
+        seed: int = 0,
+    ):
+        super().__init__()
+        self.options = opt = options or NGPOptions()
+        self.cylinder = cylinder
+        self.register_buffer("aabb", torch.tensor(aabb, dtype=torch.float32))
+        self.grid_cfg = HashGridConfig(
+            opt.n_levels,
+            opt.n_features,
+            opt.log2_table_size,
+            opt.base_resolution,
+            opt.max_resolution,
+        )
+        gen = torch.Generator().manual_seed(seed)
+        self.table = nn.Parameter(init_table(self.grid_cfg, "cpu", generator=gen))
+        self.density_net = _mlp(self.grid_cfg.n_output_dims, opt.hidden, 1 + opt.geo_features, 1)
+        self.color_net = _mlp(opt.geo_features + 16, opt.hidden, 3, 2)
+        cyl = None if cylinder is None else (cylinder.radius, cylinder.y_min, cylinder.y_max)
+        # The grid's threshold is an optical thickness over one minimal step: the marcher's.
+        self.grid = OccupancyGrid(
+            list(aabb), opt.grid_resolution, 1, cylinder=cyl, step_size=opt.dt_min
+        )
+
+    # -- state ---------------------------------------------------------------------------
+    def _apply(self, fn, recurse=True):
+        super()._apply(fn, recurse)
+        # The box is kernel geometry: it keeps float32 through .double()/.half().
+        self.aabb = self.aabb.float()
+        # The occupancy grid is plain tensors (no gradient): it follows the module's device.
+        self.grid.to(self.aabb.device)
+        return self
+
+    def grid_state_aabb(self) -> list[float]:
+        return [float(v) for v in self.aabb.cpu()]
+
+    # The grid travels as the module's extra state (key `<prefix>_extra_state`), so a field nested
+    # in another module, or wrapped by torch.compile, saves and loads it too.
+    def get_extra_state(self) -> dict:
+        return {"grid": self.grid.state_dict()}
+
+    def set_extra_state(self, state: dict) -> None:
+        self.grid.load_state_dict(state["grid"])
+
+    def config_dict(self) -> dict:
+        return {
+            "aabb": self.grid_state_aabb(),
+            "options": dataclasses.asdict(self.options),
+            "cylinder": None if self.cylinder is None else dataclasses.asdict(self.cylinder),
+        }
+
+    def built(self) -> dict:
+        """Which optional parts this field runs (for RUN/config.json)."""
+        return {
+            "cylinder": self.cylinder is not None,
+            "occupancy_grid": True,
+            "fine_network": False,
+        }
+
+    # -- field ---------------------------------------------------------------------------
+    def _normalise(self, x: torch.Tensor) -> torch.Tensor:
+        lo, hi = self.aabb[:3], self.aabb[3:]
+        return ((x - lo) / (hi - lo)).clamp(0.0, 1.0).contiguous()
+
+    def _geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3)."""
+        feats = hash_grid_encode(self._normalise(x.float()), self.table.float(), self.grid_cfg)
+        h = self.density_net(feats.to(self.density_net[0].weight.dtype))
+        sigma = trunc_exp(h[:, 0].float(), self.options.max_log_density)
+        if self.cylinder is not None:
+            sigma = clip_density(sigma, x, self.cylinder)
+        return sigma, h[:, 1:]
+
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        _check_points("x", x, "NGPField.density")
+        return self._geometry(x)[0]
+
+    def _radiance(self, geo: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        sh = sh_encode(d.float().contiguous())
+        return torch.sigmoid(self.color_net(torch.cat([geo, sh.to(geo.dtype)], -1)).float())
+
+    def color(self, x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        _check_points("x", x, "NGPField.color")
+        _check_points("d", d, "NGPField.color")
+        return self._radiance(self._geometry(x)[1], d)
+
+    def render(self, rays_o, rays_d, *, near: float, background, train: bool) -> RenderOutput:
+        _check_points("rays_o", rays_o, "NGPField.render")
+        _check_points("rays_d", rays_d, "NGPField.render")
+        if rays_o.shape != rays_d.shape:
+            raise InputError(
+                f"NGPField.render: rays_o {tuple(rays_o.shape)} and rays_d "
+                f"{tuple(rays_d.shape)} differ in shape"
+            )
+        opt = self.options
+        rays_o = rays_o.float().contiguous()
+        rays_d = rays_d.float().contiguous()
+        with torch.no_grad():
+            jitter = torch.rand(len(rays_o), device=rays_o.device) if train else None
+            packed_info, t_starts, t_ends, ray_idx = march_rays(
+                rays_o,
+                rays_d,
+                self.aabb,
+                self.grid,
+                near=near,
+                cone_angle=opt.cone_angle,
+                dt_min=opt.dt_min,
+                max_samples=opt.max_samples,
+                jitter=jitter,
+            )
+        ri = ray_idx.long()
+        t_mid = (0.5 * (t_starts + t_ends))[:, None]
+        x = rays_o[ri] + rays_d[ri] * t_mid
+        sigma, geo = self._geometry(x)
+        rgb = self._radiance(geo, rays_d[ri])
+        out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
+        res: RenderOutput = {
+            "rgb": out["rgb"],
+            "depth": out["depth"],
+            "opacity": out["opacity"],
+            "n_samples": int(len(t_starts)),
+        }
+        if train:
+            res["distortion"] = distortion_loss(
+                out["weights"], t_starts, t_ends, packed_info
+            ).mean()
+        return res
+
+    # -- occupancy -----------------------------------------------------------------------
+    def update(self, step: int) -> None:
+        """Refresh the occupancy grid every `update_every` steps (instant-ngp's schedule)."""
+        opt = self.options
+        if step % opt.update_every:
+            return
+        with torch.no_grad():
+            self.grid.update(
+                step,
+                self.density,
+                decay=opt.grid_decay,
+                threshold=opt.density_threshold,
+                warmup_steps=opt.warmup_steps,
+            )
+
+    def observe_cameras(
+        self, K: np.ndarray, c2ws: np.ndarray, width: int, height: int, near: float = 0.0
+    ) -> None:
+        """Cells no training camera sees stay empty for good (DESIGN §4).
+
+        K: (3, 3) pinhole intrinsics in pixels; c2ws: (M, 4, 4) OpenCV camera-to-world;
+        width, height: image size in pixels; near: world units.
+        """
+        dev = self.aabb.device
+        self.grid.mark_unseen(
+            torch.as_tensor(K, dtype=torch.float32, device=dev),
+            torch.as_tensor(c2ws, dtype=torch.float32, device=dev),
+            width,
+            height,
+            near,
+        )
+
+
+def build(scene: SceneConfig, cfg) -> NGPField:
+    """A new ngp field for `scene`, knobs from `cfg.backend_options` (see `NGPOptions`)."""
+    opts = NGPOptions.from_dict(dict(getattr(cfg, "backend_options", {}) or {}))
+    return NGPField(scene.aabb, opts, scene.cylinder, seed=getattr(cfg, "seed", 0))
+
+
+def from_config(config: dict) -> NGPField:
+    """Rebuild a field from its `config_dict()` (checkpoints); load the weights after."""
+    cyl = config.get("cylinder")
+    return NGPField(
+        config["aabb"], NGPOptions(**config["options"]), CylinderConfig(**cyl) if cyl else None
+    )
