@@ -128,8 +128,12 @@ class NGPField(Field):
         options: NGPOptions | None = None,
         cylinder: CylinderConfig | None = None,
         seed: int = 0,
+        device: str | torch.device | None = None,
     ):
         super().__init__()
+        # The grid is built (its kernels launched) where the field will run: a CUDA machine
+        # need not have Warp's CPU compiler. None: CUDA when there is one.
+        device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         self.options = opt = options or NGPOptions()
         self.cylinder = cylinder
         self.register_buffer("aabb", torch.tensor(aabb, dtype=torch.float32))
@@ -147,8 +151,9 @@ class NGPField(Field):
         cyl = None if cylinder is None else (cylinder.radius, cylinder.y_min, cylinder.y_max)
         # The grid's threshold is an optical thickness over one minimal step: the marcher's.
         self.grid = OccupancyGrid(
-            list(aabb), opt.grid_resolution, 1, cylinder=cyl, step_size=opt.dt_min
+            list(aabb), opt.grid_resolution, 1, cylinder=cyl, step_size=opt.dt_min, device=device
         )
+        self.to(device)
 
     # -- state ---------------------------------------------------------------------------
     def _apply(self, fn, recurse=True):
@@ -290,12 +295,17 @@ class NGPField(Field):
 def build(scene: SceneConfig, cfg) -> NGPField:
     """A new ngp field for `scene`, knobs from `cfg.backend_options` (see `NGPOptions`)."""
     opts = NGPOptions.from_dict(dict(getattr(cfg, "backend_options", {}) or {}))
-    return NGPField(scene.aabb, opts, scene.cylinder, seed=getattr(cfg, "seed", 0))
+    device = getattr(cfg, "device", None)
+    device = None if device in (None, "auto") else device
+    return NGPField(scene.aabb, opts, scene.cylinder, seed=getattr(cfg, "seed", 0), device=device)
 
 
-def from_config(config: dict) -> NGPField:
+def from_config(config: dict, device: str | torch.device | None = None) -> NGPField:
     """Rebuild a field from its `config_dict()` (checkpoints); load the weights after."""
     cyl = config.get("cylinder")
     return NGPField(
-        config["aabb"], NGPOptions(**config["options"]), CylinderConfig(**cyl) if cyl else None
+        config["aabb"],
+        NGPOptions(**config["options"]),
+        CylinderConfig(**cyl) if cyl else None,
+        device=device,
     )

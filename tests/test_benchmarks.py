@@ -1,0 +1,230 @@
+"""Benchmarks (issue #5): error against training time and the knob study, tiny and on the CPU.
+
+The runs train real fields (ngp with Warp kernels, vanilla in PyTorch) on a tiny synthetic
+scene for a second or two each, so the numbers are meaningless; the tests check the protocol:
+clock, schedule, resume, outputs, and the summary arithmetic.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from fastenerf.cli import main as cli_main
+from fastenerf.commands.bench import import_benchmark
+
+evt = import_benchmark("error-vs-time")
+knobs = import_benchmark("knobs")
+
+# Small fields and batches: a 2-core CI machine takes a few steps per second with these.
+TINY = [
+    "rays_per_step=32",
+    "windows_per_step=4",
+    "ngp:log2_table_size=12",
+    "ngp:n_levels=4",
+    "ngp:grid_resolution=32",
+    "ngp:dt_min=0.02",
+    "vanilla:depth=2",
+    "vanilla:width=32",
+    "vanilla:n_coarse=16",
+    "vanilla:n_fine=16",
+]
+EVAL = ["--device", "cpu", "--eval-views", "2", "--eval-scale", "0.5", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    from fastenerf.data.synth import make_scene
+
+    return make_scene(
+        "blocks", tmp_path_factory.mktemp("bench") / "blocks", width=48, height=32, frames=60
+    )
+
+
+def test_schedule_is_geometric_and_ends_at_the_budget():
+    assert evt.schedule(300) == [1, 2, 4, 8, 15, 30, 60, 120, 300]
+    assert evt.schedule(480)[-3:] == [120, 300, 480]
+    assert evt.schedule(3, first_s=0.25) == [0.25, 0.5, 1, 2, 3]
+    assert evt.schedule(0.3) == [0.3]
+
+
+def test_budget_preset_and_set_parsing():
+    assert evt.parse_budgets(["ngp=30", "vanilla=90"], ["ngp", "vanilla"]) == {
+        "ngp": 30.0,
+        "vanilla": 90.0,
+    }
+    assert evt.parse_budgets(["5"], ["ngp", "vanilla"]) == {"ngp": 5.0, "vanilla": 5.0}
+    assert evt.parse_presets(["vanilla=eventnerf"], ["ngp", "vanilla"]) == {
+        "ngp": "fast",
+        "vanilla": "eventnerf",
+    }
+    sets = evt.parse_sets(["rays_per_step=64", "ngp:n_levels=8"], ["ngp", "vanilla"])
+    assert sets["vanilla"] == {"train": {"rays_per_step": 64}, "backend_options": {}}
+    assert sets["ngp"]["backend_options"] == {"n_levels": 8}
+    for bad in (["ngp=-1"], ["foo=3"], ["ngp=abc"]):
+        with pytest.raises(evt.InputError):
+            evt.parse_budgets(bad, ["ngp", "vanilla"])
+
+
+def _curve(backend, pts):
+    return {
+        "scene": "s",
+        "backend": backend,
+        "budget_s": pts[-1][0],
+        "finished": True,
+        "points": [
+            {"train_s": t, "psnr": p, "ssim": 0.5, "step": i + 1} for i, (t, p) in enumerate(pts)
+        ],
+    }
+
+
+def test_summary_speedup_time_to_psnr_and_60s_gap():
+    ngp = _curve("ngp", [(1.1, 20.0), (2.2, 24.5), (4.1, 26.0), (61.0, 28.0), (300.5, 28.3)])
+    van = _curve("vanilla", [(1.5, 12.0), (120.2, 22.0), (479.9, 24.0), (480.3, 23.9)])
+    s = evt.summarize_scene({"ngp": ngp, "vanilla": van})
+    c = s["ngp_vs_vanilla"]
+    assert c["vanilla_best_psnr"] == 24.0 and c["vanilla_time_to_best_s"] == 479.9
+    assert c["ngp_time_to_same_s"] == 2.2  # first point at or above 24 dB
+    assert c["speedup"] == pytest.approx(479.9 / 2.2)
+    g = s["ngp_60s"]
+    assert g["psnr_at_60s"] == 28.0 and g["gap_db"] == pytest.approx(0.3) and g["met"]
+    # ngp never reaching vanilla's best is reported as such, not as a number
+    slow = _curve("ngp", [(1.0, 10.0), (61.0, 20.0), (300.0, 23.0)])
+    s2 = evt.summarize_scene({"ngp": slow, "vanilla": van})
+    assert not s2["ngp_vs_vanilla"]["reached"] and s2["ngp_vs_vanilla"]["speedup"] is None
+    assert not s2["ngp_60s"]["met"]
+    md = evt.markdown(
+        {
+            "machines": ["GPU X"],
+            "cpu_numbers": False,
+            "complete": True,
+            "git_commits": ["abc"],
+            "torch": ["t"],
+            "warp": ["w"],
+            "protocol": {
+                "preset": "fast",
+                "budgets_s": {"ngp": 300, "vanilla": 480},
+                "eval_every_k": {"s": 10},
+                "eval_scale": 1.0,
+                "warmup_steps": 2,
+            },
+            "summary": {"s": s, "slow": s2},
+        }
+    )
+    assert "218.1× (met)" in md and "not reached" in md and "+0.30 dB (met)" in md
+
+
+def _read(out):
+    res = json.loads((out / "error_vs_time.json").read_text())
+    img = iio.imread(out / "error_vs_time.png")
+    assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100
+    return res, (out / "error_vs_time.md").read_text()
+
+
+def test_error_vs_time_runs_both_backends_and_resumes(tiny_scene, tmp_path):
+    out = tmp_path / "evt"
+    args = [
+        "bench",
+        "error-vs-time",
+        "--scenes",
+        str(tiny_scene),
+        "--out",
+        str(out),
+        "--budget-s",
+        "ngp=1.5",
+        "vanilla=1",
+        "--first-s",
+        "0.5",
+        "--warmup-steps",
+        "1",
+        *EVAL,
+        "--set",
+        *TINY,
+    ]
+    assert cli_main(args) == 0
+    res, md = _read(out)
+    assert res["cpu_numbers"] and res["complete"]
+    assert {r["backend"] for r in res["runs"]} == {"ngp", "vanilla"}
+    assert sum(len(r["points"]) for r in res["runs"]) >= 3
+    for r in res["runs"]:
+        pts = r["points"]
+        assert len(pts) >= 1  # one slow step may pass several scheduled times
+        t = [p["train_s"] for p in pts]
+        assert all(b > a for a, b in zip(t, t[1:], strict=False))
+        assert [p["target_s"] for p in pts][-1] == r["budget_s"] and t[-1] >= r["budget_s"]
+        assert all(
+            b > a
+            for a, b in zip([p["step"] for p in pts], [p["step"] for p in pts][1:], strict=False)
+        )
+        for p in pts:
+            assert math.isfinite(p["psnr"]) and 5 < p["psnr"] < 60
+            assert -1 <= p["ssim"] <= 1 and p["eval_s"] > 0 and p["loss"] is not None
+        assert r["eval_views"] == [0, 3]  # every 3rd of the 6 test views
+    for p in res["points"]:
+        assert p["machine"].startswith("CPU:") and p["git_commit"] and p["torch"] and p["warp"]
+    assert "**CPU numbers**" in md and "| ngp |" in md and "| vanilla |" in md
+
+    # a second call without --resume refuses to overwrite
+    assert cli_main(args) == 2
+    # --resume with a larger ngp budget continues ngp's clock and appends to its curve;
+    # vanilla's budget is spent, so it is left as it was
+    before = {r["backend"]: r for r in res["runs"]}
+    args2 = [a if a != "ngp=1.5" else "ngp=2.5" for a in args]
+    args2[args2.index("--warmup-steps") + 1] = "0"
+    assert cli_main([*args2, "--resume"]) == 0
+    res2, _ = _read(out)
+    after = {r["backend"]: r for r in res2["runs"]}
+    old, new = before["ngp"]["points"], after["ngp"]["points"]
+    assert new[: len(old)] == old and len(new) > len(old)
+    assert new[len(old)]["train_s"] > old[-1]["train_s"] and new[-1]["train_s"] >= 2.5
+    assert new[len(old)]["step"] > old[-1]["step"] and new[-1]["session"] == 1
+    assert after["vanilla"]["points"] == before["vanilla"]["points"]
+    ck = json.loads((out / "runs" / "blocks-ngp" / "progress.json").read_text())
+    assert ck["step"] == new[-1]["step"] and ck["train_seconds"] == pytest.approx(
+        new[-1]["train_s"]
+    )
+
+
+def test_knobs_two_variants(tiny_scene, tmp_path):
+    out = tmp_path / "knobs"
+    base = [t.split(":", 1)[-1] for t in TINY if not t.startswith("vanilla:")]
+    rc = cli_main(
+        [
+            "bench",
+            "knobs",
+            "--scene",
+            str(tiny_scene),
+            "--out",
+            str(out),
+            "--budget-s",
+            "1",
+            "--variants",
+            "default",
+            "dt_min_x2",
+            "--warmup-steps",
+            "0",
+            *EVAL,
+            "--set",
+            *base,
+        ]
+    )
+    assert rc == 0
+    res = json.loads((out / "knobs.json").read_text())
+    rows = {r["name"]: r for r in res["variants"]}
+    assert set(rows) == {"default", "dt_min_x2"} and res["complete"] and res["cpu_numbers"]
+    assert rows["default"]["default"] and not rows["dt_min_x2"]["default"]
+    for r in rows.values():
+        assert math.isfinite(r["psnr"]) and r["step_ms"] > 0 and r["steps"] >= 1
+        assert r["samples_per_step"] > 0
+    assert any(r["pareto"] for r in rows.values())
+    # dt_min x2 was resolved against the box: its run really used twice the step
+    cfg = json.loads((out / "runs" / "dt_min_x2" / "config.json").read_text())
+    assert cfg["field"]["options"]["dt_min"] == pytest.approx(0.04)
+    assert iio.imread(out / "knobs.png").ndim == 3
+    md = (out / "knobs.md").read_text()
+    assert "**default**" in md and "dt_min_x2" in md and "CPU numbers" in md
+    assert np.isfinite(rows["dt_min_x2"]["psnr"])
