@@ -1,0 +1,371 @@
+"""Benchmarks of the rendering kernels (marching, compositing): Warp vs the same op in PyTorch.
+
+Each `bench_*` returns a dict of medians in milliseconds (CUDA events on GPU, warm-up excluded),
+errors against a float64 reference, a minimal-bytes estimate, the achieved GB/s and the device's
+measured copy bandwidth (DESIGN §8). They also run on CPU at tiny sizes (a smoke test does).
+``python -m benchmarks.kernels_render --device cuda`` prints the results as JSON.
+
+Plain-PyTorch baselines:
+  - compositing: packed samples scattered into a dense (rays x max samples) array, exclusive
+    transmittance with cumprod, early-stop mask, segment sums with index_add; autograd backward;
+  - marching: dense uniform steps over every ray's box interval, occupancy lookup of each
+    midpoint in the dense bool grid, compaction with boolean masks (the same intervals as the
+    Warp marcher with cone_angle = 0 and no jitter, so sample counts must agree).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+
+import torch
+from fastenerf.kernels.composite import T_MIN, composite
+from fastenerf.kernels.occupancy import OccupancyGrid
+from fastenerf.kernels.raymarch import march_rays
+
+
+def _time_ms(fn, device: str, repeats: int, warmup: int = 2) -> float:
+    """Median wall time of fn() in ms (CUDA events on GPU)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    if str(device).startswith("cuda"):
+        torch.cuda.synchronize()
+        for _ in range(repeats):
+            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            a.record()
+            fn()
+            b.record()
+            b.synchronize()
+            times.append(a.elapsed_time(b))
+    else:
+        for _ in range(repeats):
+            t = time.perf_counter()
+            fn()
+            times.append((time.perf_counter() - t) * 1e3)
+    return statistics.median(times)
+
+
+def copy_bandwidth_gbs(device: str, n_bytes: int = 2**30) -> float:
+    """Device-to-device copy rate, bytes read + written per second, in GB/s."""
+    if not str(device).startswith("cuda"):
+        n_bytes = 2**24
+    a = torch.empty(n_bytes // 4, dtype=torch.float32, device=device).uniform_()
+    b = torch.empty_like(a)
+    ms = _time_ms(lambda: b.copy_(a), device, repeats=10)
+    return 2 * n_bytes / ms * 1e-6
+
+
+# ---------------------------------------------------------------------------------------------
+# Plain-PyTorch versions of the same ops
+
+
+def torch_composite(sigmas, rgbs, t_starts, t_ends, packed_info, background=None):
+    """Compositing over packed samples with dense cumprod and segment sums (autograd)."""
+    R = packed_info.shape[0]
+    counts = packed_info[:, 1].long()
+    ray = torch.repeat_interleave(torch.arange(R, device=sigmas.device), counts)
+    pos = torch.arange(ray.numel(), device=sigmas.device) - packed_info[:, 0].long()[ray]
+    N = int(counts.max()) if R else 0
+    tau = sigmas * (t_ends - t_starts).clamp_min(0)
+    trans = torch.ones(R, N + 1, dtype=sigmas.dtype, device=sigmas.device)
+    trans = trans.index_put((ray, pos + 1), torch.exp(-tau))
+    T = torch.cumprod(trans, 1)[ray, pos]
+    w = torch.where(T >= T_MIN, T * -torch.expm1(-tau), torch.zeros_like(T))
+    z = torch.zeros(R, dtype=sigmas.dtype, device=sigmas.device)
+    opacity = z.index_add(0, ray, w)
+    depth = z.index_add(0, ray, w * 0.5 * (t_starts + t_ends))
+    rgb = torch.zeros(R, 3, dtype=sigmas.dtype, device=sigmas.device)
+    rgb = rgb.index_add(0, ray, w[:, None] * rgbs)
+    if background is not None:
+        rgb = rgb + (1 - opacity)[:, None] * background
+    return {"rgb": rgb, "depth": depth, "opacity": opacity, "weights": w}
+
+
+def torch_march(rays_o, rays_d, aabb, binary, dt, max_samples, chunk_elems=2**26):
+    """Dense constant steps + occupancy lookup + boolean-mask compaction (one cascade)."""
+    dev, dtype = rays_o.device, rays_o.dtype
+    lo = torch.tensor(aabb[:3], dtype=dtype, device=dev)
+    hi = torch.tensor(aabb[3:], dtype=dtype, device=dev)
+    res = binary.shape[-1]
+    safe = torch.where(rays_d.abs() < 1e-12, torch.full_like(rays_d, 1e-12), rays_d)
+    ta, tb = (lo - rays_o) / safe, (hi - rays_o) / safe
+    t0 = torch.minimum(ta, tb).amax(1).clamp_min(0)
+    t1 = torch.maximum(ta, tb).amin(1)
+    hit = t1 > t0
+    n_steps = int(((t1 - t0)[hit].max() / dt).ceil()) + 1 if hit.any() else 0
+    occ = binary.reshape(-1)
+    outs = []
+    rows = max(1, chunk_elems // max(n_steps, 1))
+    for s in range(0, rays_o.shape[0], rows):
+        o, d = rays_o[s : s + rows], rays_d[s : s + rows]
+        a0, a1 = t0[s : s + rows, None], t1[s : s + rows, None]
+        k = torch.arange(n_steps, dtype=dtype, device=dev)
+        start = a0 + k * dt
+        end = torch.minimum(start + dt, a1)
+        mid = 0.5 * (start + end)
+        p = o[:, None] + mid[..., None] * d[:, None]
+        ijk = ((p - lo) / (hi - lo) * res).floor().long().clamp_(0, res - 1)
+        keep = (start < a1) & occ[(ijk[..., 0] * res + ijk[..., 1]) * res + ijk[..., 2]]
+        keep &= torch.cumsum(keep, 1) <= max_samples
+        r, _ = torch.nonzero(keep, as_tuple=True)
+        outs.append((keep.sum(1), start[keep], end[keep], r + s))
+    counts = torch.cat([x[0] for x in outs]).int()
+    csum = torch.cumsum(counts, 0, dtype=torch.int32)
+    packed = torch.stack([csum - counts, counts], 1)
+    cat = lambda i: torch.cat([x[i] for x in outs])  # noqa: E731
+    return packed, cat(1), cat(2), cat(3).int()
+
+
+# ---------------------------------------------------------------------------------------------
+# Benchmarks
+
+
+def _packed_case(n_rays, mean_samples, device, seed=0):
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    counts = torch.randint(0, 2 * mean_samples + 1, (n_rays,), generator=g).int()
+    csum = torch.cumsum(counts, 0, dtype=torch.int32)
+    packed = torch.stack([csum - counts, counts], 1)
+    S = int(csum[-1])
+    dt = torch.empty(S).uniform_(2e-3, 1e-2, generator=g)
+    sig = torch.empty(S).exponential_(1.0, generator=g) * 20
+    ray = torch.repeat_interleave(torch.arange(n_rays), counts.long())
+    excl = torch.cumsum(dt, 0) - dt
+    t_s = excl - excl[packed[ray, 0].long()] + 0.5
+    rgbs = torch.rand(S, 3, generator=g)
+    to = lambda x: x.to(device).contiguous()  # noqa: E731
+    return to(sig), to(rgbs), to(t_s), to(t_s + dt), to(packed)
+
+
+def bench_composite(device="cuda", n_rays=2**16, mean_samples=64, repeats=20) -> dict:
+    """Compositing forward / forward+backward: Warp kernel vs plain PyTorch, same device."""
+    sig, rgbs, t_s, t_e, packed = _packed_case(n_rays, mean_samples, device)
+    S = sig.shape[0]
+    bg = torch.tensor([0.3, 0.5, 0.7], device=device)
+    g_rgb = torch.randn(n_rays, 3, device=device)
+    r = {"device": str(device), "n_rays": n_rays, "n_samples": S}
+
+    def run(fn, backward):
+        s = sig.clone().requires_grad_(backward)
+        c = rgbs.clone().requires_grad_(backward)
+        out = fn(s, c, t_s, t_e, packed, background=bg)
+        if backward:
+            torch.autograd.grad((out["rgb"] * g_rgb).sum() + out["depth"].sum(), (s, c))
+        return out
+
+    for name, fn in (("warp", composite), ("torch", torch_composite)):
+        with torch.no_grad():
+            r[f"{name}_fwd_ms"] = _time_ms(lambda fn=fn: run(fn, False), device, repeats)
+        r[f"{name}_fwdbwd_ms"] = _time_ms(lambda fn=fn: run(fn, True), device, repeats)
+    r["speedup_fwd"] = r["torch_fwd_ms"] / r["warp_fwd_ms"]
+    r["speedup_fwdbwd"] = r["torch_fwdbwd_ms"] / r["warp_fwdbwd_ms"]
+
+    # errors vs float64 (values and sigma / rgb gradients)
+    s64, c64 = sig.double().requires_grad_(), rgbs.double().requires_grad_()
+    ref = torch_composite(s64, c64, t_s.double(), t_e.double(), packed, bg.double())
+    gs64, gc64 = torch.autograd.grad(
+        (ref["rgb"] * g_rgb.double()).sum() + ref["depth"].sum(), (s64, c64)
+    )
+    s32, c32 = sig.clone().requires_grad_(), rgbs.clone().requires_grad_()
+    out = composite(s32, c32, t_s, t_e, packed, background=bg)
+    gs, gc = torch.autograd.grad((out["rgb"] * g_rgb).sum() + out["depth"].sum(), (s32, c32))
+    r["max_abs_err_rgb"] = (out["rgb"].double() - ref["rgb"]).abs().max().item()
+    r["max_abs_err_depth"] = (out["depth"].double() - ref["depth"]).abs().max().item()
+    r["max_rel_err_grad_sigma"] = ((gs.double() - gs64).abs().max() / gs64.abs().max()).item()
+    r["max_abs_err_grad_rgb"] = (gc.double() - gc64).abs().max().item()
+    tout = torch_composite(sig, rgbs, t_s, t_e, packed, bg)
+    r["torch_fp32_max_abs_err_rgb"] = (tout["rgb"].double() - ref["rgb"]).abs().max().item()
+
+    # minimal bytes: per sample sigma, t0, t1, rgb in, weight out (fwd); grads out (bwd)
+    fwd = 28 * S + 32 * n_rays
+    bwd = 40 * S + 52 * n_rays
+    r["fwd_GBps"] = fwd / r["warp_fwd_ms"] * 1e-6
+    r["fwdbwd_GBps"] = (fwd + bwd) / r["warp_fwdbwd_ms"] * 1e-6
+    r["copy_GBps"] = copy_bandwidth_gbs(device)
+    return r
+
+
+def _scene(device, n_rays, resolution, seed=0):
+    """Occupied spherical shell (0.35 < |x| < 0.6) seen from cameras on a radius-2.5 sphere."""
+    g = torch.Generator(device="cpu").manual_seed(seed)
+    grid = OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=resolution, device=device)
+
+    def shell(x):
+        r = x.norm(dim=-1)
+        return ((r > 0.35) & (r < 0.6)).float() * 1e3
+
+    torch.manual_seed(seed)
+    grid.update(0, shell)
+    o = torch.nn.functional.normalize(torch.randn(n_rays, 3, generator=g), dim=-1) * 2.5
+    target = (torch.rand(n_rays, 3, generator=g) - 0.5) * 1.2
+    d = torch.nn.functional.normalize(target - o, dim=-1)
+    return grid, shell, o.to(device), d.to(device)
+
+
+def bench_march_composite(
+    device="cuda", n_rays=2**16, resolution=128, max_samples=1024, repeats=10
+) -> dict:
+    """Marching (+ an analytic field + compositing fwd/bwd): Warp vs plain PyTorch."""
+    grid, shell, o, d = _scene(device, n_rays, resolution)
+    aabb = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+    dt = grid.step_size
+    binary = grid.binary[0]
+    r = {
+        "device": str(device),
+        "n_rays": n_rays,
+        "resolution": resolution,
+        "dt": dt,
+        "occupied_fraction": binary.float().mean().item(),
+    }
+
+    def wmarch():
+        return march_rays(o, d, aabb, grid, 0.0, None, 0.0, dt, dt, max_samples, None)
+
+    def tmarch():
+        return torch_march(o, d, aabb, binary, dt, max_samples)
+
+    def field(packed, t_s, t_e, ri):
+        mid = 0.5 * (t_s + t_e)
+        p = o[ri.long()] + mid[:, None] * d[ri.long()]
+        return shell(p) * 0.05, torch.sigmoid(p * 3)
+
+    def pipeline(march, comp):
+        packed, t_s, t_e, ri = march()
+        sig, rgb = field(packed, t_s, t_e, ri)
+        sig.requires_grad_(True)
+        rgb.requires_grad_(True)
+        out = comp(sig, rgb, t_s, t_e, packed)
+        torch.autograd.grad(out["rgb"].sum(), (sig, rgb))
+        return out
+
+    r["warp_march_ms"] = _time_ms(wmarch, device, repeats)
+    r["torch_march_ms"] = _time_ms(tmarch, device, max(2, repeats // 2), warmup=1)
+    r["speedup_march"] = r["torch_march_ms"] / r["warp_march_ms"]
+    r["warp_pipeline_ms"] = _time_ms(lambda: pipeline(wmarch, composite), device, repeats)
+    r["torch_pipeline_ms"] = _time_ms(
+        lambda: pipeline(tmarch, torch_composite), device, max(2, repeats // 2), warmup=1
+    )
+    r["speedup_pipeline"] = r["torch_pipeline_ms"] / r["warp_pipeline_ms"]
+
+    # sample sets vs the float64 dense reference (same intervals: counts must agree)
+    pw = wmarch()
+    p64 = torch_march(o.double(), d.double(), aabb, binary, dt, max_samples)
+    S = int(pw[0][:, 1].sum())
+    r["n_samples"] = S
+    r["samples_per_ray"] = S / n_rays
+    r["count_mismatch_fraction"] = (pw[0][:, 1] - p64[0][:, 1]).abs().sum().item() / max(
+        1, int(p64[0][:, 1].sum())
+    )
+    same = pw[0][:, 1] == p64[0][:, 1]
+    mask = torch.repeat_interleave(same, pw[0][:, 1].long())
+    mask64 = torch.repeat_interleave(same, p64[0][:, 1].long())
+    r["max_abs_err_t_start"] = (
+        (pw[1][mask].double() - p64[1][mask64]).abs().max().item() if mask.any() else 0.0
+    )
+    out_w = pipeline(wmarch, composite)
+    packed, t_s, t_e, ri = p64
+    sig64, rgb64 = field(packed, t_s, t_e, ri)
+    ref = torch_composite(sig64.double(), rgb64.double(), t_s, t_e, packed)
+    # end to end: includes the few samples float32 and float64 place in different cells
+    r["max_abs_err_rgb"] = (out_w["rgb"].double() - ref["rgb"]).abs().max().item()
+
+    # minimal bytes of the two marching passes: rays in twice, counts, samples out
+    march_bytes = 12 * S + n_rays * (2 * 24 + 4 + 8)
+    r["march_GBps"] = march_bytes / r["warp_march_ms"] * 1e-6
+    r["copy_GBps"] = copy_bandwidth_gbs(device)
+    return r
+
+
+def kernel_outputs(device="cuda", n_rays=4096, seed=0) -> dict:
+    """Every kernel's outputs on fixed inputs (moved to the CPU), to compare devices with
+    `compare_outputs`: the CPU backend is what the tests check against float64."""
+    g = torch.Generator().manual_seed(seed)
+    cyl = (0.6, -0.5, 0.5)
+    grid = OccupancyGrid(
+        [-1] * 3 + [1] * 3, resolution=64, n_cascades=2, cylinder=cyl, device=device
+    )
+    sd = grid.state_dict()
+    occ = (torch.rand(grid.density.shape, generator=g) < 0.5).float()
+    sd["density"] = torch.where(sd["density"] < 0, sd["density"], occ)
+    sd["threshold"] = torch.tensor([0.5])
+    grid.load_state_dict(sd)
+    o = torch.randn(n_rays, 3, generator=g) * 2
+    d = torch.nn.functional.normalize(torch.rand(n_rays, 3, generator=g) - 0.5 - o * 0.3, dim=-1)
+    jit = torch.rand(n_rays, generator=g)
+    x = torch.rand(100000, 3, generator=g) * 6 - 3
+    out = {}
+    march = march_rays(
+        o.to(device),
+        d.to(device),
+        [-2.0] * 3 + [2.0] * 3,
+        grid,
+        0.01,
+        6.0,
+        0.01,
+        0.005,
+        0.05,
+        512,
+        jit.to(device),
+    )
+    for k, v in zip(("packed_info", "t_starts", "t_ends", "ray_indices"), march, strict=True):
+        out[k] = v.cpu()
+    out["occupied"] = grid.occupied(x.to(device)).cpu()
+    K = torch.tensor([[200.0, 0, 64], [0, 200.0, 48], [0, 0, 1]])
+    c2w = torch.eye(4, dtype=torch.float64)
+    c2w[2, 3] = -3.0
+    grid.mark_unseen(K, c2w[None], 128, 96, 0.1)
+    out["valid"] = grid.valid.cpu()
+    sig, rgbs, t_s, t_e, packed = _packed_case(n_rays, 32, device, seed)
+    s, c = sig.requires_grad_(), rgbs.requires_grad_()
+    res = composite(s, c, t_s, t_e, packed, background=torch.tensor([0.1, 0.2, 0.3]))
+    (res["rgb"].sum() + res["weights"].sum()).backward()
+    for k in ("rgb", "depth", "weights"):
+        out["composite_" + k] = res[k].detach().cpu()
+    out["composite_grad_sigma"], out["composite_grad_rgb"] = s.grad.cpu(), c.grad.cpu()
+    return out
+
+
+def compare_outputs(a: dict, b: dict) -> dict:
+    """Disagreements between two `kernel_outputs` results (0 / tiny when the devices agree)."""
+    same = a["packed_info"][:, 1] == b["packed_info"][:, 1]
+    ma = torch.repeat_interleave(same, a["packed_info"][:, 1].long())
+    mb = torch.repeat_interleave(same, b["packed_info"][:, 1].long())
+    r = {
+        "n_samples": (a["t_starts"].numel(), b["t_starts"].numel()),
+        "march_rays_count_mismatch": int((~same).sum()),
+        "march_max_abs_diff_t": (a["t_starts"][ma] - b["t_starts"][mb]).abs().max().item(),
+        "occupied_mismatch": int((a["occupied"] != b["occupied"]).sum()),
+        "mark_unseen_mismatch": int((a["valid"] != b["valid"]).sum()),
+    }
+    for k in a:
+        if k.startswith("composite_"):
+            r[k + "_max_abs_diff"] = (a[k] - b[k]).abs().max().item()
+    return r
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--n-rays", type=int, default=None)
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--dump", help="also save kernel_outputs() here (compare_outputs on CPU)")
+    a = ap.parse_args(argv)
+    cuda = a.device.startswith("cuda")
+    n = a.n_rays or (2**16 if cuda else 2**10)
+    res = {
+        "composite": bench_composite(a.device, n, repeats=a.repeats),
+        "march_composite": bench_march_composite(
+            a.device, n, resolution=128 if cuda else 64, repeats=a.repeats
+        ),
+    }
+    if a.dump:
+        torch.save(kernel_outputs(a.device), a.dump)
+    print(json.dumps(res, indent=1, default=lambda x: float(x) if math.isfinite(x) else str(x)))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

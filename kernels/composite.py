@@ -1,0 +1,453 @@
+"""Front-to-back volume compositing over packed samples, and the mip-NeRF 360 distortion loss.
+
+Packed-sample convention (as nerfacc): the samples of ray r are contiguous at
+``[packed_info[r, 0], packed_info[r, 0] + packed_info[r, 1])``, ordered by t along the ray.
+
+    alpha_i = 1 - exp(-sigma_i * delta_i)          delta_i = t_end_i - t_start_i
+    T_i     = prod_{j<i} (1 - alpha_j)             w_i = T_i * alpha_i
+    rgb     = sum_i w_i c_i + (1 - opacity) * bg   opacity = sum_i w_i
+    depth   = sum_i w_i (t_start_i + t_end_i) / 2  (un-normalised: divide by opacity for the
+                                                   expected depth of the visible surface)
+
+A ray stops at the first sample whose incoming transmittance T_i is below `T_MIN` (1e-4); that
+sample and all after it get weight 0 and zero gradient, in forward and backward alike.
+
+The backward pass walks each ray's samples again (instant-ngp / torch-ngp `composite_rays_train`):
+every output is linear in the weights, so with the per-sample "effective weight gradient"
+``e_i = <g_rgb, c_i - bg> + g_depth * z_i + g_opacity + g_w_i`` the gradient is
+
+    dL/dsigma_i = delta_i * (e_i * T_{i+1} - sum_{j>i} e_j w_j)
+
+and the suffix sum is the ray's total (known from the forward outputs) minus the running prefix:
+no per-sample tape is stored beyond the weights and the per-ray outputs forward writes.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import warp as wp
+
+from .common import device_of, init, stream_of
+
+T_MIN = 1e-4
+"""Transmittance below which a ray stops (instant-ngp's early termination)."""
+
+# Every output buffer comes from here, so a test can hand out poisoned memory and check
+# that the kernels write every element.
+_empty = torch.empty
+# Zero-copy descriptors (not wp.array objects): a third of the per-launch Python cost.
+_arr = functools.partial(wp.from_torch, requires_grad=False, return_ctype=True)
+
+
+@wp.func
+def one_minus_exp_neg(x: float) -> float:
+    """1 - exp(-x) for x >= 0, accurate to a few ulp also for tiny x (an expm1).
+
+    Plain ``1 - exp(-x)`` rounds to 0 below x ~ 6e-8 in float32, so a sample with a tiny
+    step or density would get no weight and no gradient. Kahan's trick:
+    expm1(y) = (u - 1) * y / log(u) with u = exp(y) cancels the rounding error of exp.
+    """
+    if x >= 1.0:
+        return 1.0 - wp.exp(-x)
+    u = wp.exp(-x)
+    if u == 1.0:
+        return x
+    return (1.0 - u) * x / (-wp.log(u))
+
+
+@wp.func
+def optical_depth(sigma: float, t0: float, t1: float) -> float:
+    """sigma * delta with delta clamped at 0; a zero-length step has zero optical depth even
+    for sigma = inf (0 * inf would be NaN)."""
+    delta = t1 - t0
+    if delta > 0.0:
+        return sigma * delta
+    return 0.0
+
+
+@wp.kernel
+def _composite_fwd(
+    sigmas: wp.array(dtype=float),
+    rgbs: wp.array(dtype=wp.vec3),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    packed_info: wp.array(dtype=wp.vec2i),
+    bg: wp.vec3,
+    t_min: float,
+    weights: wp.array(dtype=float),
+    out_rgb: wp.array(dtype=wp.vec3),
+    out_depth: wp.array(dtype=float),
+    out_opacity: wp.array(dtype=float),
+    n_used: wp.array(dtype=wp.int32),
+):
+    r = wp.tid()
+    start = packed_info[r][0]
+    n = packed_info[r][1]
+    T = wp.float32(1.0)
+    c = wp.vec3(0.0)
+    d = wp.float32(0.0)
+    o = wp.float32(0.0)
+    used = wp.int32(0)
+    for i in range(n):
+        s = start + i
+        if T >= t_min:
+            tau = optical_depth(sigmas[s], t_starts[s], t_ends[s])
+            w = T * one_minus_exp_neg(tau)
+            weights[s] = w
+            c += w * rgbs[s]
+            d += w * 0.5 * (t_starts[s] + t_ends[s])
+            o += w
+            T = T * wp.exp(-tau)
+            used = i + 1
+        else:
+            weights[s] = 0.0
+    out_rgb[r] = c + (1.0 - o) * bg
+    out_depth[r] = d
+    out_opacity[r] = o
+    n_used[r] = used
+
+
+@functools.cache
+def _composite_bwd_kernel(has_grad_weights: bool):
+    """Backward kernel; the weights' own gradient term is compiled in only when needed."""
+
+    @wp.kernel(module="unique")
+    def composite_bwd(
+        sigmas: wp.array(dtype=float),
+        rgbs: wp.array(dtype=wp.vec3),
+        t_starts: wp.array(dtype=float),
+        t_ends: wp.array(dtype=float),
+        packed_info: wp.array(dtype=wp.vec2i),
+        bg: wp.vec3,
+        n_used: wp.array(dtype=wp.int32),
+        weights: wp.array(dtype=float),
+        out_rgb: wp.array(dtype=wp.vec3),
+        out_depth: wp.array(dtype=float),
+        out_opacity: wp.array(dtype=float),
+        g_rgb: wp.array(dtype=wp.vec3),
+        g_depth: wp.array(dtype=float),
+        g_opacity: wp.array(dtype=float),
+        g_weights: wp.array(dtype=float),
+        grad_sigmas: wp.array(dtype=float),
+        grad_rgbs: wp.array(dtype=wp.vec3),
+    ):
+        r = wp.tid()
+        start = packed_info[r][0]
+        n = packed_info[r][1]
+        used = n_used[r]
+        gc = g_rgb[r]
+        gd = g_depth[r]
+        go = g_opacity[r]
+        # Total sum_j e_j w_j from the forward outputs: out_rgb - bg = sum w c - opacity * bg.
+        total = wp.dot(gc, out_rgb[r] - bg) + gd * out_depth[r] + go * out_opacity[r]
+        if wp.static(has_grad_weights):
+            for i in range(used):
+                total += g_weights[start + i] * weights[start + i]
+        T = wp.float32(1.0)
+        prefix = wp.float32(0.0)
+        for i in range(n):
+            s = start + i
+            if i < used:
+                tau = optical_depth(sigmas[s], t_starts[s], t_ends[s])
+                w = T * one_minus_exp_neg(tau)  # recomputed: cheaper than reading it back
+                e = wp.dot(gc, rgbs[s] - bg) + gd * 0.5 * (t_starts[s] + t_ends[s]) + go
+                if wp.static(has_grad_weights):
+                    e += g_weights[s]
+                T = T * wp.exp(-tau)
+                prefix += e * w
+                delta = wp.max(t_ends[s] - t_starts[s], 0.0)
+                grad_sigmas[s] = delta * (e * T - (total - prefix))
+                grad_rgbs[s] = w * gc
+            else:
+                grad_sigmas[s] = 0.0
+                grad_rgbs[s] = wp.vec3(0.0)
+
+    return composite_bwd
+
+
+def _bg_vec(background: torch.Tensor | None) -> wp.vec3:
+    if background is None:
+        return wp.vec3(0.0, 0.0, 0.0)
+    b = [float(v) for v in background.detach().reshape(3).cpu()]
+    return wp.vec3(b[0], b[1], b[2])
+
+
+def _check_packed(sigmas, t_starts, t_ends, packed_info) -> None:
+    S = sigmas.shape[0]
+    if t_starts.shape != (S,) or t_ends.shape != (S,):
+        raise ValueError(f"t_starts/t_ends must be ({S},), got {tuple(t_starts.shape)}")
+    if packed_info.dtype != torch.int32 or packed_info.ndim != 2 or packed_info.shape[1] != 2:
+        raise ValueError("packed_info must be (R, 2) int32")
+
+
+class _Composite(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, sigmas, rgbs, t_starts, t_ends, packed_info, background):
+        init()
+        ctx.set_materialize_grads(False)
+        sigmas = sigmas.detach().float().contiguous()
+        rgbs = rgbs.detach().float().contiguous()
+        t_starts = t_starts.detach().float().contiguous()
+        t_ends = t_ends.detach().float().contiguous()
+        packed_info = packed_info.contiguous()
+        R, S, dev = packed_info.shape[0], sigmas.shape[0], sigmas.device
+        weights = _empty(S, dtype=torch.float32, device=dev)
+        rgb = _empty(R, 3, dtype=torch.float32, device=dev)
+        depth = _empty(R, dtype=torch.float32, device=dev)
+        opacity = _empty(R, dtype=torch.float32, device=dev)
+        n_used = _empty(R, dtype=torch.int32, device=dev)
+        bg = _bg_vec(background)
+        if R > 0:
+            wp.launch(
+                _composite_fwd,
+                dim=R,
+                inputs=[
+                    _arr(sigmas),
+                    _arr(rgbs, dtype=wp.vec3),
+                    _arr(t_starts),
+                    _arr(t_ends),
+                    _arr(packed_info, dtype=wp.vec2i),
+                    bg,
+                    T_MIN,
+                ],
+                outputs=[
+                    _arr(weights),
+                    _arr(rgb, dtype=wp.vec3),
+                    _arr(depth),
+                    _arr(opacity),
+                    _arr(n_used),
+                ],
+                device=device_of(sigmas),
+                stream=stream_of(sigmas),
+            )
+        ctx.bg = bg
+        ctx.save_for_backward(
+            sigmas, rgbs, t_starts, t_ends, packed_info, n_used, weights, rgb, depth, opacity
+        )
+        return rgb, depth, opacity, weights
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_depth, g_opacity, g_weights):
+        sigmas, rgbs, t_starts, t_ends, packed_info, n_used, weights, rgb, depth, opacity = (
+            ctx.saved_tensors
+        )
+        R, S, dev = packed_info.shape[0], sigmas.shape[0], sigmas.device
+
+        def grad_or_zeros(g, like):
+            if g is None:
+                return torch.zeros_like(like)
+            return g.detach().float().contiguous()
+
+        g_rgb = grad_or_zeros(g_rgb, rgb)
+        g_depth = grad_or_zeros(g_depth, depth)
+        g_opacity = grad_or_zeros(g_opacity, opacity)
+        has_gw = g_weights is not None
+        g_weights = grad_or_zeros(g_weights, weights) if has_gw else weights  # unread if absent
+        grad_sigmas = _empty(S, dtype=torch.float32, device=dev)
+        grad_rgbs = _empty(S, 3, dtype=torch.float32, device=dev)
+        if R > 0:
+            wp.launch(
+                _composite_bwd_kernel(has_gw),
+                dim=R,
+                inputs=[
+                    _arr(sigmas),
+                    _arr(rgbs, dtype=wp.vec3),
+                    _arr(t_starts),
+                    _arr(t_ends),
+                    _arr(packed_info, dtype=wp.vec2i),
+                    ctx.bg,
+                    _arr(n_used),
+                    _arr(weights),
+                    _arr(rgb, dtype=wp.vec3),
+                    _arr(depth),
+                    _arr(opacity),
+                    _arr(g_rgb, dtype=wp.vec3),
+                    _arr(g_depth),
+                    _arr(g_opacity),
+                    _arr(g_weights),
+                ],
+                outputs=[_arr(grad_sigmas), _arr(grad_rgbs, dtype=wp.vec3)],
+                device=device_of(sigmas),
+                stream=stream_of(sigmas),
+            )
+        elif S > 0:
+            grad_sigmas.zero_()
+            grad_rgbs.zero_()
+        return grad_sigmas, grad_rgbs, None, None, None, None
+
+
+def composite(
+    sigmas: torch.Tensor,
+    rgbs: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    packed_info: torch.Tensor,
+    ray_indices: torch.Tensor | None = None,
+    background: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """Composite packed samples front to back; differentiable w.r.t. `sigmas` and `rgbs`.
+
+    Args:
+        sigmas: (S,) float32 >= 0, density in 1/world units (finite or +inf; NaN propagates
+            to its ray).
+        rgbs: (S, 3) float32 colour of each sample.
+        t_starts, t_ends: (S,) float32 interval ends along the unit ray direction, world units.
+        packed_info: (R, 2) int32 (first sample, sample count) of each ray.
+        ray_indices: (S,) int32 owner ray of each sample; not read (packed_info says it all),
+            accepted for symmetry with the marcher's outputs.
+        background: (3,) colour composited behind every ray, or None (black, i.e. nothing).
+
+    Returns:
+        dict with rgb (R, 3), depth (R,) un-normalised sum of w * t_mid in world units,
+        opacity (R,) = sum of weights, weights (S,); all differentiable (the gradient of
+        `weights` flows back to `sigmas`).
+    """
+    _check_packed(sigmas, t_starts, t_ends, packed_info)
+    if rgbs.shape != (sigmas.shape[0], 3):
+        raise ValueError(f"rgbs must be ({sigmas.shape[0]}, 3), got {tuple(rgbs.shape)}")
+    rgb, depth, opacity, weights = _Composite.apply(
+        sigmas, rgbs, t_starts, t_ends, packed_info, background
+    )
+    return {"rgb": rgb, "depth": depth, "opacity": opacity, "weights": weights}
+
+
+# --------------------------------------------------------------------------------------------
+# Distortion loss (mip-NeRF 360, eq. 15), O(n) per ray with running sums.
+#
+#   L_r = sum_{i,j} w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 delta_i
+#
+# m_i = (t_start_i + t_end_i) / 2 in world units (nerfacc's convention; pass normalised t for
+# mip-NeRF 360's s-space). Samples must be sorted along each ray, as the marcher emits them.
+#   sum_{i,j} w_i w_j |m_i - m_j| = 2 sum_i w_i (m_i W_{<i} - WM_{<i})
+#   dL/dw_i = 2 (m_i W_{<i} - WM_{<i} + WM_{>i} - m_i W_{>i}) + 2/3 w_i delta_i
+# --------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def _distortion_fwd(
+    weights: wp.array(dtype=float),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    packed_info: wp.array(dtype=wp.vec2i),
+    loss: wp.array(dtype=float),
+    totals: wp.array(dtype=wp.vec2),
+):
+    r = wp.tid()
+    start = packed_info[r][0]
+    n = packed_info[r][1]
+    W = wp.float32(0.0)
+    WM = wp.float32(0.0)
+    inter = wp.float32(0.0)
+    uni = wp.float32(0.0)
+    for i in range(n):
+        s = start + i
+        w = weights[s]
+        m = 0.5 * (t_starts[s] + t_ends[s])
+        inter += w * (m * W - WM)
+        uni += w * w * (t_ends[s] - t_starts[s])
+        W += w
+        WM += w * m
+    loss[r] = 2.0 * inter + uni / 3.0
+    totals[r] = wp.vec2(W, WM)
+
+
+@wp.kernel
+def _distortion_bwd(
+    weights: wp.array(dtype=float),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    packed_info: wp.array(dtype=wp.vec2i),
+    totals: wp.array(dtype=wp.vec2),
+    g_loss: wp.array(dtype=float),
+    grad_weights: wp.array(dtype=float),
+):
+    r = wp.tid()
+    start = packed_info[r][0]
+    n = packed_info[r][1]
+    g = g_loss[r]
+    W_tot = totals[r][0]
+    WM_tot = totals[r][1]
+    W = wp.float32(0.0)
+    WM = wp.float32(0.0)
+    for i in range(n):
+        s = start + i
+        w = weights[s]
+        m = 0.5 * (t_starts[s] + t_ends[s])
+        # before: W, WM exclude i; after: totals minus the inclusive prefix
+        W_after = W_tot - W - w
+        WM_after = WM_tot - WM - w * m
+        d = m * W - WM + WM_after - m * W_after
+        grad_weights[s] = g * (2.0 * d + 2.0 / 3.0 * w * (t_ends[s] - t_starts[s]))
+        W += w
+        WM += w * m
+
+
+class _Distortion(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, weights, t_starts, t_ends, packed_info):
+        init()
+        weights = weights.detach().float().contiguous()
+        t_starts = t_starts.detach().float().contiguous()
+        t_ends = t_ends.detach().float().contiguous()
+        packed_info = packed_info.contiguous()
+        R, dev = packed_info.shape[0], weights.device
+        loss = _empty(R, dtype=torch.float32, device=dev)
+        totals = _empty(R, 2, dtype=torch.float32, device=dev)
+        if R > 0:
+            wp.launch(
+                _distortion_fwd,
+                dim=R,
+                inputs=[
+                    _arr(weights),
+                    _arr(t_starts),
+                    _arr(t_ends),
+                    _arr(packed_info, dtype=wp.vec2i),
+                ],
+                outputs=[_arr(loss), _arr(totals, dtype=wp.vec2)],
+                device=device_of(weights),
+                stream=stream_of(weights),
+            )
+        ctx.save_for_backward(weights, t_starts, t_ends, packed_info, totals)
+        return loss
+
+    @staticmethod
+    def backward(ctx, g_loss):
+        weights, t_starts, t_ends, packed_info, totals = ctx.saved_tensors
+        R = packed_info.shape[0]
+        grad = _empty(weights.shape[0], dtype=torch.float32, device=weights.device)
+        if R > 0:
+            wp.launch(
+                _distortion_bwd,
+                dim=R,
+                inputs=[
+                    _arr(weights),
+                    _arr(t_starts),
+                    _arr(t_ends),
+                    _arr(packed_info, dtype=wp.vec2i),
+                    _arr(totals, dtype=wp.vec2),
+                    _arr(g_loss.detach().float().contiguous()),
+                ],
+                outputs=[_arr(grad)],
+                device=device_of(weights),
+                stream=stream_of(weights),
+            )
+        elif weights.shape[0] > 0:
+            grad.zero_()
+        return grad, None, None, None
+
+
+def distortion_loss(
+    weights: torch.Tensor,
+    t_starts: torch.Tensor,
+    t_ends: torch.Tensor,
+    packed_info: torch.Tensor,
+) -> torch.Tensor:
+    """Per-ray mip-NeRF 360 distortion loss (R,), differentiable w.r.t. `weights` (S,).
+
+    Midpoints are in the units of `t_starts`/`t_ends` (world units from the marcher); samples
+    must be sorted along each ray and not overlap. Take `.mean()` for the regulariser.
+    """
+    _check_packed(weights, t_starts, t_ends, packed_info)
+    return _Distortion.apply(weights, t_starts, t_ends, packed_info)

@@ -1,0 +1,515 @@
+"""Ray–AABB intersection and occupancy-guided ray marching into packed samples.
+
+Step rule. Samples partition the ray's range [t0, t1] (box entry clamped to `near`, box exit
+clamped to `far`) into intervals whose length follows instant-ngp's cone rule
+``dt = clamp(t * cone_angle, dt_min, dt_max)``. To make the rule skippable, the lattice is
+defined by a warped coordinate u(t) with du/dt = 1/dt(t):
+
+    t < dt_min/cone                 : u grows by 1 every dt_min      (constant steps)
+    dt_min/cone <= t < dt_max/cone  : t grows by (1 + cone) per unit u (dt = cone·t)
+    t >= dt_max/cone                : u grows by 1 every dt_max      (constant steps)
+
+Interval k of a ray spans u in [k + j - 1, k + j] (j = the ray's jitter in [0, 1), 0 without)
+clipped to [t0, t1]; its step is exactly clamp(t_k·cone, dt_min, dt_max) except the one step
+that straddles a phase change. A candidate interval is kept when the cell holding its midpoint
+is occupied (and, with a cylinder clip, the midpoint lies in the cylinder). Because the lattice
+is a closed form of k, an empty cell is skipped in O(1): the march jumps to the first interval
+whose midpoint is past the cell's exit, so the result equals dense stepping over every interval
+(tests check exactly that) while touching only occupied cells.
+
+Output (nerfacc's packed convention): packed_info (R, 2) int32 (first sample, count),
+t_starts/t_ends (S,) float32 world units along the unit direction, ray_indices (S,) int32.
+Two passes run the same compiled kernel (so they agree bit for bit): count, exclusive scan
+(torch.cumsum), write. A pass may split each ray's lattice over several threads (`segments`),
+which changes nothing in the output; the max_samples cap keeps each ray's nearest samples.
+Jumps in empty space go cell by cell at the cascade of the sample (no mip from dt, unlike
+instant-ngp). No gradients: sample positions are not differentiated.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import torch
+import warp as wp
+
+from .common import device_of, init, stream_of
+from .occupancy import OccupancyGrid, bit_at, cell_lo, cell_size, default_step_size, locate_func
+
+_empty = torch.empty
+# Zero-copy descriptors (not wp.array objects): a third of the per-launch Python cost.
+_arr = functools.partial(wp.from_torch, requires_grad=False, return_ctype=True)
+
+_PARALLEL = 1e-12  # |d_k| below this: the ray is parallel to the slab (avoids 0 * inf = NaN)
+
+
+@wp.func
+def ray_box(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3):
+    """Slab test: (t_min, t_max) of the line o + t d inside [lo, hi] (t_min > t_max: miss).
+
+    An axis with d_k ~ 0 constrains nothing when lo_k <= o_k <= hi_k and misses otherwise, so
+    rays lying in a face plane are handled without forming 0 * inf.
+    """
+    tmin = wp.float32(-1e30)
+    tmax = wp.float32(1e30)
+    for k in range(3):
+        if wp.abs(d[k]) < _PARALLEL:
+            if o[k] < lo[k] or o[k] > hi[k]:
+                tmin = wp.float32(1e30)
+                tmax = wp.float32(-1e30)
+        else:
+            ta = (lo[k] - o[k]) / d[k]
+            tb = (hi[k] - o[k]) / d[k]
+            tmin = wp.max(tmin, wp.min(ta, tb))
+            tmax = wp.min(tmax, wp.max(ta, tb))
+    return tmin, tmax
+
+
+@wp.kernel
+def _ray_aabb(
+    rays_o: wp.array(dtype=wp.vec3),
+    rays_d: wp.array(dtype=wp.vec3),
+    lo: wp.vec3,
+    hi: wp.vec3,
+    near: float,
+    far: float,
+    t_near: wp.array(dtype=float),
+    t_far: wp.array(dtype=float),
+):
+    r = wp.tid()
+    tmin, tmax = ray_box(rays_o[r], rays_d[r], lo, hi)
+    tmin = wp.max(tmin, near)
+    tmax = wp.min(tmax, far)
+    if tmax > tmin:
+        t_near[r] = tmin
+        t_far[r] = tmax
+    else:
+        t_near[r] = wp.inf
+        t_far[r] = wp.inf
+
+
+@wp.struct
+class StepRule:
+    """dt = clamp(t * cone, a, b); L = log1p(cone); t1p = a / cone, t2p = b / cone; the
+    reciprocals spare the loop its divisions."""
+
+    a: float
+    b: float
+    L: float
+    inv_a: float
+    inv_b: float
+    inv_L: float
+    t1p: float
+    t2p: float
+
+
+@wp.struct
+class Lattice:
+    """One ray's lattice: phase boundaries of the step rule in t (x1, x2) and in u (u1, u2),
+    measured from the ray's start t0; jm1 = jitter - 1. Precomputed once per ray so that a
+    lattice point costs one compare and one fma (phase 2: an exp)."""
+
+    t0: float
+    jm1: float
+    u1: float
+    u2: float
+    x1: float
+    x2: float
+
+
+@wp.func
+def make_lattice(rule: StepRule, t0: float, jm1: float) -> Lattice:
+    lat = Lattice()
+    lat.t0 = t0
+    lat.jm1 = jm1
+    lat.x1 = wp.max(t0, rule.t1p)
+    lat.u1 = (lat.x1 - t0) * rule.inv_a
+    lat.x2 = wp.max(lat.x1, rule.t2p)
+    lat.u2 = lat.u1
+    if lat.x1 < lat.x2:
+        lat.u2 = lat.u1 + wp.log(lat.x2 / lat.x1) * rule.inv_L
+    return lat
+
+
+@wp.func
+def u_of(rule: StepRule, lat: Lattice, t: float) -> float:
+    """Warped distance u from the ray's t0 to t >= t0, in steps (see module docstring)."""
+    if t <= lat.x1:
+        return (t - lat.t0) * rule.inv_a
+    if t <= lat.x2:
+        return lat.u1 + wp.log(t / lat.x1) * rule.inv_L
+    return lat.u2 + (t - lat.x2) * rule.inv_b
+
+
+@wp.func
+def t_of(rule: StepRule, lat: Lattice, u: float) -> float:
+    """Inverse of u_of: the t that lies u steps past t0 (t0 for u <= 0)."""
+    if u <= 0.0:
+        return lat.t0
+    if u <= lat.u1:
+        return lat.t0 + u * rule.a
+    if u <= lat.u2:
+        return lat.x1 * wp.exp((u - lat.u1) * rule.L)
+    return lat.x2 + (u - lat.u2) * rule.b
+
+
+@wp.func
+def lattice_point(rule: StepRule, lat: Lattice, m: int) -> float:
+    """Lattice point m of a ray, t(m + j - 1); interval k is [P(k), P(k + 1)] clipped to
+    [t0, t1]. One expression for every use, so neighbours share their end exactly."""
+    return t_of(rule, lat, float(m) + lat.jm1)
+
+
+@wp.func
+def safe_inverse(d: wp.vec3) -> wp.vec3:
+    """1 / d per axis, 0 where the ray is parallel to the axis' slabs."""
+    inv = wp.vec3(0.0)
+    for k in range(3):
+        if wp.abs(d[k]) >= _PARALLEL:
+            inv[k] = 1.0 / d[k]
+    return inv
+
+
+@wp.func
+def cell_exit(o: wp.vec3, d: wp.vec3, inv_d: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> float:
+    """t at which the ray leaves the box [lo, hi] it is inside (1e30 if never)."""
+    t = wp.float32(1e30)
+    for k in range(3):
+        if d[k] >= _PARALLEL:
+            t = wp.min(t, (hi[k] - o[k]) * inv_d[k])
+        elif d[k] <= -_PARALLEL:
+            t = wp.min(t, (lo[k] - o[k]) * inv_d[k])
+    return t
+
+
+@functools.cache
+def _march_kernel(n_cascades: int, cylinder: bool):
+    """Marcher specialised to the grid: `n_cascades` = 0 means no grid (all occupied); the
+    cylinder test is compiled in only when the scene has one.
+
+    One thread marches one segment of one ray: segment j of n_seg covers lattice intervals
+    [K j / n_seg, K (j + 1) / n_seg) of the ray's K, the last one open-ended. Decisions depend
+    only on each interval's midpoint, so any split gives the same samples; splitting gives the
+    GPU enough threads when rays are few."""
+    locate = locate_func(max(n_cascades, 1))
+
+    @wp.kernel(module="unique")
+    def march(
+        rays_o: wp.array(dtype=wp.vec3),
+        rays_d: wp.array(dtype=wp.vec3),
+        lo: wp.vec3,
+        hi: wp.vec3,
+        near: float,
+        far: float,
+        rule: StepRule,
+        center: wp.vec3,
+        half: wp.vec3,
+        inv_half: wp.vec3,
+        res: int,
+        bitfield: wp.array(dtype=wp.uint8),
+        cyl: wp.vec3,
+        jitter: wp.array(dtype=float),
+        use_jitter: int,
+        max_samples: int,
+        n_seg: int,
+        write: int,
+        counts: wp.array(dtype=wp.int32),
+        seg_info: wp.array(dtype=wp.vec2i),
+        t_starts: wp.array(dtype=float),
+        t_ends: wp.array(dtype=float),
+        ray_indices: wp.array(dtype=wp.int32),
+    ):
+        tid = wp.tid()
+        r = tid / n_seg
+        seg = tid - r * n_seg
+        o = rays_o[r]
+        d = rays_d[r]
+        t0, t1 = ray_box(o, d, lo, hi)
+        t0 = wp.max(t0, near)
+        t1 = wp.min(t1, far)
+        limit = max_samples
+        base = wp.int32(0)
+        if write != 0:
+            base = seg_info[tid][0]
+            limit = seg_info[tid][1]
+        jm1 = wp.float32(-1.0)
+        if use_jitter != 0:
+            jm1 = jitter[r] - 1.0
+        lat = make_lattice(rule, t0, jm1)
+        k = wp.int32(0)
+        k_hi = wp.int32(1 << 30)
+        if n_seg > 1 and t1 > t0:
+            K = int(wp.min(u_of(rule, lat, t1) - jm1, 6.0e7)) + 2
+            k = (K * seg) / n_seg
+            if seg < n_seg - 1:
+                k_hi = (K * (seg + 1)) / n_seg
+        inv_d = safe_inverse(d)
+        n = wp.int32(0)
+        ta = lattice_point(rule, lat, k)
+        tb_raw = lattice_point(rule, lat, k + 1)
+        # t before which midpoints are known to lie in the current (occupied) cell: saves the
+        # cell lookup for the ~4 samples per cell after the first
+        occ_until = wp.float32(-1.0)
+        while n < limit and k < k_hi and ta < t1:
+            tb = wp.min(tb_raw, t1)
+            step = wp.int32(1)
+            if tb > ta:  # else: empty first interval (no jitter) or rounding
+                mid = 0.5 * (ta + tb)
+                p = o + mid * d
+                occ = wp.int32(1)
+                if wp.static(n_cascades > 0):
+                    if mid >= occ_until:
+                        c = locate(p, center, inv_half, res)
+                        occ = bit_at(bitfield, c, res)
+                        clo = cell_lo(c, center, half, res)
+                        B = cell_exit(o, d, inv_d, clo, clo + cell_size(c[0], half, res))
+                        if occ != 0:
+                            occ_until = B
+                        else:
+                            # Skip the empty cell: to the first interval whose midpoint is past
+                            # its exit B. B lies in interval floor(u(B) - j + 1); that one or the
+                            # next. (Rounding only matters where the midpoint is at B.)
+                            if B >= t1:
+                                break
+                            ub = wp.min(u_of(rule, lat, B) - jm1, 1.0e9)
+                            kk = wp.max(k + 1, int(wp.floor(ub)))
+                            if kk < k_hi:
+                                qa = lattice_point(rule, lat, kk)
+                                qb = wp.min(lattice_point(rule, lat, kk + 1), t1)
+                                if qa < t1 and 0.5 * (qa + qb) < B:
+                                    kk += 1
+                            step = kk - k
+                if occ != 0:
+                    if wp.static(cylinder):
+                        if (
+                            p[0] * p[0] + p[2] * p[2] > cyl[0] * cyl[0]
+                            or p[1] < cyl[1]
+                            or (p[1] > cyl[2])
+                        ):
+                            occ = 0
+                    if occ != 0:
+                        if write != 0:
+                            t_starts[base + n] = ta
+                            t_ends[base + n] = tb
+                            ray_indices[base + n] = r
+                        n += 1
+            k += step
+            if step == 1:
+                ta = tb_raw
+            else:
+                ta = lattice_point(rule, lat, k)
+            tb_raw = lattice_point(rule, lat, k + 1)
+        if write != 0:
+            # never reached (both passes run this same code); keeps the buffer fully written
+            for i in range(n, limit):
+                t_starts[base + i] = t1
+                t_ends[base + i] = t1
+                ray_indices[base + i] = r
+        else:
+            counts[tid] = n
+
+    return march
+
+
+def _box_of(aabb) -> list[float]:
+    a = [float(v) for v in (aabb.tolist() if isinstance(aabb, torch.Tensor) else aabb)]
+    if len(a) != 6:
+        raise ValueError(f"aabb must have 6 values, got {len(a)}")
+    return a
+
+
+def ray_aabb(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    aabb,
+    near: float = 0.0,
+    far: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry and exit distance of each ray in the box, clamped to [near, far].
+
+    Args:
+        rays_o, rays_d: (R, 3) float32 origins and directions, world units.
+        aabb: (6,) [xmin, ymin, zmin, xmax, ymax, zmax].
+    Returns:
+        t_near, t_far: (R,) float32; a ray starting inside has t_near = near; a ray that
+        misses (or only touches the box, zero length) has t_near = t_far = inf.
+    """
+    init()
+    a = _box_of(aabb)
+    rays_o = rays_o.float().contiguous()
+    rays_d = rays_d.float().contiguous()
+    R = rays_o.shape[0]
+    t_near = _empty(R, dtype=torch.float32, device=rays_o.device)
+    t_far = _empty(R, dtype=torch.float32, device=rays_o.device)
+    if R > 0:
+        wp.launch(
+            _ray_aabb,
+            dim=R,
+            inputs=[
+                _arr(rays_o, dtype=wp.vec3),
+                _arr(rays_d, dtype=wp.vec3),
+                wp.vec3(*a[:3]),
+                wp.vec3(*a[3:]),
+                float(near),
+                1e30 if far is None else float(far),
+            ],
+            outputs=[_arr(t_near), _arr(t_far)],
+            device=device_of(rays_o),
+            stream=stream_of(rays_o),
+        )
+    return t_near, t_far
+
+
+@functools.lru_cache(maxsize=64)
+def step_rule(cone_angle: float, dt_min: float, dt_max: float) -> StepRule:
+    """The Warp struct for dt = clamp(t * cone_angle, dt_min, dt_max) (cached: do not mutate)."""
+    if not (dt_min > 0 and dt_max >= dt_min and cone_angle >= 0):
+        raise ValueError(
+            f"need dt_min > 0, dt_max >= dt_min, cone_angle >= 0; got {dt_min}, {dt_max}, "
+            f"{cone_angle}"
+        )
+    rule = StepRule()
+    rule.a = float(dt_min)
+    rule.b = float(dt_max)
+    if cone_angle > 0:
+        rule.L = math.log1p(cone_angle)
+        rule.t1p = dt_min / cone_angle
+        rule.t2p = dt_max / cone_angle
+    else:
+        rule.L = 1.0
+        rule.t1p = rule.t2p = 1e30
+    rule.inv_a, rule.inv_b, rule.inv_L = 1.0 / rule.a, 1.0 / rule.b, 1.0 / rule.L
+    return rule
+
+
+def march_rays(
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    aabb,
+    grid: OccupancyGrid | None,
+    near: float = 0.0,
+    far: float | None = None,
+    cone_angle: float = 0.0,
+    dt_min: float | None = None,
+    dt_max: float | None = None,
+    max_samples: int = 1024,
+    jitter: torch.Tensor | None = None,
+    segments: int | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Sample intervals along rays at occupied cells only (no gradients).
+
+    Args:
+        rays_o: (R, 3) float32 origins, world units.
+        rays_d: (R, 3) float32 unit directions (t is then distance).
+        aabb: (6,) box to march in; it is also clipped to the grid's outermost cascade.
+        grid: occupancy grid, or None to treat the whole box as occupied.
+        near, far: range of t, world units (far None: unbounded).
+        cone_angle: dt grows as t * cone_angle (0: constant steps of dt_min).
+        dt_min: smallest step (default: the grid's step_size, or √3/1024 · max box side).
+        dt_max: largest step (default: √3 · coarsest cell edge, instant-ngp's choice).
+        max_samples: cap on samples per ray (the nearest ones are kept).
+        jitter: (R,) float32 in [0, 1) shifts each ray's lattice (training), None: no shift.
+            Fixed jitter gives bit-identical output.
+        segments: threads per ray (each marches a contiguous part of the ray's lattice; the
+            output does not depend on it). Default: 1 on CPU; on GPU 2^15 / R, in 1..8.
+    Returns:
+        packed_info (R, 2) int32, t_starts (S,), t_ends (S,) float32, ray_indices (S,) int32.
+    """
+    init()
+    box = _box_of(aabb)
+    if grid is not None:
+        outer = grid.outer_aabb()
+        box = [max(box[i], outer[i]) for i in range(3)] + [min(box[i], outer[i]) for i in (3, 4, 5)]
+    if dt_min is None:
+        dt_min = grid.step_size if grid is not None else default_step_size(box)
+    if dt_max is None:
+        if grid is not None:
+            a = grid.aabb_list
+            edge = max(a[3] - a[0], a[4] - a[1], a[5] - a[2]) * 2 ** (grid.n_cascades - 1)
+            edge /= grid.resolution
+        else:
+            edge = max(box[3] - box[0], box[4] - box[1], box[5] - box[2]) / 128
+        dt_max = max(dt_min, math.sqrt(3.0) * edge)
+    rule = step_rule(float(cone_angle), float(dt_min), float(dt_max))
+    if max_samples < 0:
+        raise ValueError(f"max_samples must be >= 0, got {max_samples}")
+    rays_o = rays_o.float().contiguous()
+    rays_d = rays_d.float().contiguous()
+    R, dev = rays_o.shape[0], rays_o.device
+    if jitter is not None:
+        jitter = jitter.to(device=dev, dtype=torch.float32).contiguous()
+        if jitter.shape != (R,):
+            raise ValueError(f"jitter must be ({R},), got {tuple(jitter.shape)}")
+    if grid is not None:
+        kernel = _march_kernel(grid.n_cascades, grid.cylinder is not None)
+        geom = [grid.center, grid.half, grid.inv_half, grid.resolution, _arr(grid.bitfield)]
+        cyl = wp.vec3(*grid.cylinder) if grid.cylinder is not None else wp.vec3(0.0)
+    else:
+        kernel = _march_kernel(0, False)
+        dummy = torch.zeros(1, dtype=torch.uint8, device=dev)
+        geom = [wp.vec3(0.0), wp.vec3(1.0), wp.vec3(1.0), 2, _arr(dummy)]
+        cyl = wp.vec3(0.0)
+    if segments is None:
+        # Measured on an H100 (shell scene, 128^3): 4096 rays 1.35 -> 0.95 ms with 8 segments,
+        # 16384 rays 1.36 -> 1.13 ms with 2, 65536 rays slower with any split. The CPU backend
+        # runs threads one after another: no split.
+        segments = 1 if dev.type == "cpu" else max(1, min(8, 2**15 // max(R, 1)))
+    n_seg = int(segments)
+    if n_seg < 1:
+        raise ValueError(f"segments must be >= 1, got {segments}")
+    jit = jitter if jitter is not None else torch.zeros(1, device=dev)
+    counts = _empty(R * n_seg, dtype=torch.int32, device=dev)
+    f0 = torch.zeros(0, device=dev)
+    i0 = torch.zeros(0, dtype=torch.int32, device=dev)
+    head = [
+        _arr(rays_o, dtype=wp.vec3),
+        _arr(rays_d, dtype=wp.vec3),
+        wp.vec3(*box[:3]),
+        wp.vec3(*box[3:]),
+        float(near),
+        1e30 if far is None else float(far),
+        rule,
+        *geom,
+        cyl,
+        _arr(jit),
+        int(jitter is not None),
+        int(max_samples),
+        n_seg,
+    ]
+    launch = functools.partial(wp.launch, kernel, dim=R * n_seg, device=device_of(rays_o))
+    stream = stream_of(rays_o)
+    si0 = torch.zeros(0, 2, dtype=torch.int32, device=dev)
+    if R > 0:
+        launch(
+            inputs=head + [0],
+            outputs=[_arr(counts), _arr(si0, dtype=wp.vec2i), _arr(f0), _arr(f0), _arr(i0)],
+            stream=stream,
+        )
+    if n_seg > 1:
+        # the cap keeps each ray's nearest samples: segment j gets what is left of it
+        incl = torch.cumsum(counts.view(R, n_seg), 1, dtype=torch.int32).clamp_(max=max_samples)
+        seg_counts = torch.diff(incl, dim=1, prepend=torch.zeros_like(incl[:, :1])).view(-1)
+    else:
+        seg_counts = counts
+    csum = torch.cumsum(seg_counts, 0, dtype=torch.int32)
+    seg_info = torch.stack([csum - seg_counts, seg_counts], 1).contiguous()
+    per_ray = seg_counts.view(R, n_seg).sum(1, dtype=torch.int32)
+    packed_info = torch.stack([seg_info.view(R, n_seg, 2)[:, 0, 0], per_ray], 1).contiguous()
+    S = int(csum[-1]) if R > 0 else 0
+    t_starts = _empty(S, dtype=torch.float32, device=dev)
+    t_ends = _empty(S, dtype=torch.float32, device=dev)
+    ray_indices = _empty(S, dtype=torch.int32, device=dev)
+    if S > 0:
+        launch(
+            inputs=head + [1],
+            outputs=[
+                _arr(counts),
+                _arr(seg_info, dtype=wp.vec2i),
+                _arr(t_starts),
+                _arr(t_ends),
+                _arr(ray_indices),
+            ],
+            stream=stream,
+        )
+    return packed_info, t_starts, t_ends, ray_indices
