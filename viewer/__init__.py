@@ -1,1 +1,12 @@
-"""Interactive viewer (installed as `fastenerf.viewer`)."""
+"""Interactive viewer (installed as `fastenerf.viewer`).
+
+camera.py    OrbitCamera (orbit / pan / zoom / snap), intrinsics from a field of view, camera paths
+tonemap.py   exposure in log space, depth / opacity colouring, 8-bit
+autoscale.py resolution scale that holds a frame rate while moving and refines when still
+frame.py     one frame: render_raw (through fastenerf.render.render_image) and shade
+blit.py      GL: FrameTexture (pinned upload), Offscreen, headless EGL snapshot
+worker.py    background render thread for the window
+source.py    what is viewed: a run on disk, live training (TrainThread), or a field
+app.py       the imgui-bundle window (Viewer, run_app)
+bench.py     bench_viewer / bench_upload
+"""
