@@ -60,3 +60,13 @@ def scene_config():
         return SceneConfig(**kw).validate()
 
     return make
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    """A tiny synthetic scene folder made once per session: the built-in default scene at
+    64x48, 100 frames (a 0.1 s loop), RGGB, test view every 10th frame."""
+    from fastenerf.data.synth import DEFAULT_SCENE, make_scene
+
+    return make_scene(DEFAULT_SCENE, tmp_path_factory.mktemp("tiny") / "scene", width=64,
+                      height=48, frames=100)

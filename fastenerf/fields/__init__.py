@@ -1,0 +1,45 @@
+"""Field backends behind one interface (`fields.base.Field`), chosen by name.
+
+A backend is a module `fastenerf.fields.<name>` exposing
+    build(scene: SceneConfig, cfg: TrainConfig) -> Field   a new field for a scene
+    from_config(config: dict) -> Field                     rebuild from `Field.config_dict()`
+Modules are imported lazily, so the vanilla path works without the ngp kernels.
+"""
+
+from __future__ import annotations
+
+import importlib
+from types import ModuleType
+
+from ..errors import InputError
+from .base import Field, RenderOutput
+
+BACKENDS = ("ngp", "vanilla")
+
+__all__ = ["BACKENDS", "Field", "RenderOutput", "backend_module", "field_from_config", "make_field"]
+
+
+def backend_module(backend: str) -> ModuleType:
+    """The module implementing `backend`, or a one-line `InputError`."""
+    if backend not in BACKENDS:
+        raise InputError(f"unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+    name = f"fastenerf.fields.{backend}"
+    try:
+        return importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        if e.name != name:
+            raise
+        raise InputError(
+            f"backend {backend!r} is not available in this build "
+            f"({name} is missing); use --backend vanilla"
+        ) from None
+
+
+def make_field(backend: str, scene, cfg) -> Field:
+    """A new field of `backend` for scene (SceneConfig) trained with cfg (TrainConfig)."""
+    return backend_module(backend).build(scene, cfg)
+
+
+def field_from_config(backend: str, config: dict) -> Field:
+    """Rebuild a field of `backend` from the `config_dict()` saved in a checkpoint."""
+    return backend_module(backend).from_config(config)

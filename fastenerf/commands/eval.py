@@ -1,0 +1,48 @@
+"""`fastenerf eval`: score a trained run on its scene's ground-truth test views."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "evaluate a run: render the test views, colour-correct, PSNR / SSIM / LPIPS"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_dir", metavar="RUN_DIR", help="a training run folder")
+    p.add_argument(
+        "--views",
+        type=int,
+        default=None,
+        help="evaluate this many evenly spaced test views (default: all)",
+    )
+    p.add_argument(
+        "--scale",
+        type=float,
+        default=1.0,
+        help="render at this fraction of the sensor size (default 1)",
+    )
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        default=None,
+        help="folder for the corrected images and sheet (default RUN_DIR/eval)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import InputError
+    from ..evaluate import evaluate_run, format_metrics
+
+    if args.scale <= 0 or (args.views is not None and args.views < 1):
+        raise InputError("--scale must be positive and --views at least 1")
+    m = evaluate_run(
+        args.run_dir,
+        max_views=args.views,
+        scale=args.scale,
+        out_dir=args.out,
+        progress=not args.no_progress,
+    )
+    print(format_metrics(m))
+    print(f"wrote {args.run_dir}/metrics.json, images in {m['images']}/, sheet {m['sheet']}")
+    return 0

@@ -1,0 +1,305 @@
+"""Which windows and which pixels a training step sees (DESIGN §3, supplement G).
+
+WindowSampler: windows (t0, t1] on the stream's pose grid t_j = t_start + j·(t_end − t_start)/n
+(j = 0..n): a window ends at a grid time t_j (j uniform in 1..n, so every view is used) and
+spans w ~ U{win_min..win_max} views, t0 = t_{j−w}. On a loop t0 may precede t_start: the event
+index wraps it to the stream's end and its pose is that of grid index (j − w) mod n; without a
+loop t0 is clamped to t_start. w is re-drawn every step ("step") or drawn once per end view
+when the sampler is built ("load", as the reference does).
+
+RaySampler: for each window, (1 − neg_ratio) of its pixels are the pixels of random events
+inside the window (drawn from the time-sorted stream, so busy pixels are drawn more often),
+the rest uniform over the sensor (negative samples: mostly E = 0, keeping static regions and
+background stable). A window without events falls back to uniform pixels. Rays are made on
+the training device from a per-pixel direction table and the grid's camera-to-world table,
+both computed once. Targets E come from the Warp kernel `fastenerf.kernels.events.window_sum`
+when it imports and agrees with the numpy `EventIndex.query`, otherwise from the latter.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from .data.events import EventIndex
+from .data.rig import Rig
+from .errors import InputError
+from .render import camera_directions, generate_rays
+
+
+class WindowSampler:
+    """Random windows on the pose grid; all randomness from one seeded numpy Generator.
+
+    n_views: grid intervals n (n + 1 grid times); t_start, t_end: µs; win_min, win_max: views.
+    """
+
+    def __init__(
+        self,
+        n_views: int,
+        t_start: int,
+        t_end: int,
+        win_min: int,
+        win_max: int,
+        redraw: str = "step",
+        loop: bool = True,
+        seed: int = 0,
+    ):
+        if n_views < 1 or t_end <= t_start:
+            raise InputError(
+                f"window grid: need n_views >= 1 and t_end > t_start "
+                f"(got {n_views}, {t_start}..{t_end})"
+            )
+        if not 1 <= win_min <= win_max:
+            raise InputError(
+                f"window lengths: need 1 <= win_min <= win_max (got {win_min}, {win_max})"
+            )
+        if redraw not in ("step", "load"):
+            raise InputError(f"win_redraw must be 'step' or 'load', got {redraw!r}")
+        self.n_views, self.t_start, self.t_end = int(n_views), int(t_start), int(t_end)
+        # A window never spans more than the whole stream (a loop would count events twice).
+        self.win_min, self.win_max = int(min(win_min, n_views)), int(min(win_max, n_views))
+        self.redraw, self.loop = redraw, bool(loop)
+        self.rng = np.random.default_rng(seed)
+        self.lengths = None
+        if redraw == "load":
+            self.lengths = self.rng.integers(self.win_min, self.win_max + 1, size=n_views + 1)
+
+    def grid_times(self, j: np.ndarray) -> np.ndarray:
+        """µs (int64) of grid indices j (any integers; negative ones lie before t_start)."""
+        j = np.asarray(j, dtype=np.int64)
+        return self.t_start + (j * (self.t_end - self.t_start)) // self.n_views
+
+    def pose_index(self, j: np.ndarray) -> np.ndarray:
+        """Row of the (n + 1)-pose table for grid indices j: wrapped on loops, else clamped."""
+        j = np.asarray(j, dtype=np.int64)
+        return np.mod(j, self.n_views) if self.loop else np.clip(j, 0, self.n_views)
+
+    def sample(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """n windows as grid indices (j0, j1), (n,) int64 each, j0 < j1."""
+        j1 = self.rng.integers(1, self.n_views + 1, size=n)
+        if self.lengths is not None:
+            w = self.lengths[j1]
+        else:
+            w = self.rng.integers(self.win_min, self.win_max + 1, size=n)
+        j0 = j1 - w
+        if not self.loop:
+            j0 = np.maximum(j0, 0)
+        return j0.astype(np.int64), j1.astype(np.int64)
+
+    def state_dict(self) -> dict:
+        return {"rng": self.rng.bit_generator.state, "lengths": self.lengths}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.rng.bit_generator.state = state["rng"]
+        self.lengths = state["lengths"]
+
+
+@dataclass
+class RayBatch:
+    """One step's rays: B pixels, each rendered at t0 (rows :B) and t1 (rows B:).
+
+    rays_o, rays_d: (2B, 3) world units / unit; pix: (B,) flat pixel ids; channel: (B,) Bayer
+    channel or None (mono); target: (B,) E(u; t0, t1] in log units; positive: (B,) bool,
+    True for event pixels; n_windows: windows in the batch.
+    """
+
+    rays_o: torch.Tensor
+    rays_d: torch.Tensor
+    pix: torch.Tensor
+    channel: torch.Tensor | None
+    target: torch.Tensor
+    positive: torch.Tensor
+    n_windows: int
+
+
+def _load_window_sum():
+    try:
+        from .kernels.events import window_sum  # type: ignore[import-not-found]
+    except Exception:  # noqa: BLE001 - any import problem means: use numpy
+        return None
+    return window_sum
+
+
+class RaySampler:
+    """Pixels, rays and event targets for a batch of windows (see module docstring).
+
+    index: the scene's EventIndex; rig: its Rig; windows: the WindowSampler; device: where rays
+    are made and rendered; use_kernel: None tries the Warp kernel, False forces numpy.
+    """
+
+    def __init__(
+        self,
+        index: EventIndex,
+        rig: Rig,
+        windows: WindowSampler,
+        *,
+        rays_per_step: int,
+        windows_per_step: int,
+        neg_ratio: float,
+        device: str | torch.device = "cpu",
+        seed: int = 0,
+        use_kernel: bool | None = None,
+    ):
+        self.index, self.rig, self.windows = index, rig, windows
+        self.device = torch.device(device)
+        self.n_windows = int(windows_per_step)
+        self.per_window = max(1, int(rays_per_step) // self.n_windows)
+        self.n_neg = min(self.per_window, int(round(neg_ratio * self.per_window)))
+        self.n_pix = rig.intrinsics.width * rig.intrinsics.height
+        self.dirs = camera_directions(rig.intrinsics, self.device)
+        grid_t = windows.grid_times(np.arange(windows.n_views + 1))
+        self.grid_c2w = torch.as_tensor(rig.pose(grid_t), dtype=torch.float32, device=self.device)
+        self.times_sorted = torch.as_tensor(index.times_sorted, device=self.device)
+        self.pixels_by_time = torch.as_tensor(index.pixels_by_time, device=self.device)
+        self.gen = torch.Generator(device=self.device)
+        self.gen.manual_seed(int(seed) + 1)
+        self.mono = rig.bayer is None
+        self._kernel = None
+        if use_kernel is not False:
+            self._kernel = self._check_kernel(_load_window_sum())
+        self._kernel_arrays = index.to_torch(self.device) if self._kernel else None
+
+    @property
+    def target_backend(self) -> str:
+        return "warp" if self._kernel is not None else "numpy"
+
+    # -- targets -----------------------------------------------------------------------------
+
+    def _check_kernel(self, kernel):
+        """Use the Warp kernel only if it reproduces the numpy query on a few windows."""
+        if kernel is None:
+            return None
+        rng = np.random.default_rng(0)
+        pix = rng.integers(0, self.n_pix, 64)
+        if len(self.index.pixels_by_time):
+            pix[:32] = rng.choice(self.index.pixels_by_time, 32)
+        ws = self.windows
+        j1 = rng.integers(1, ws.n_views + 1, 64)
+        j0 = j1 - rng.integers(ws.win_min, ws.win_max + 1, 64)
+        if not ws.loop:
+            j0 = np.maximum(j0, 0)
+        t0, t1 = ws.grid_times(j0), ws.grid_times(j1)
+        want = self.index.query(pix, t0, t1)
+        try:
+            arrays = self.index.to_torch(self.device)
+            got = self._kernel_query(
+                kernel,
+                arrays,
+                torch.as_tensor(pix, device=self.device),
+                torch.as_tensor(t0, device=self.device),
+                torch.as_tensor(t1, device=self.device),
+            )
+            ok = np.allclose(got.cpu().numpy(), want, atol=1e-5)
+        except Exception as e:  # noqa: BLE001 - a broken kernel must not stop training
+            warnings.warn(
+                f"Warp window_sum unusable ({e}); using the numpy event index", stacklevel=2
+            )
+            return None
+        if not ok:
+            warnings.warn(
+                "Warp window_sum disagrees with EventIndex.query; using numpy", stacklevel=2
+            )
+            return None
+        return kernel
+
+    def _kernel_query(self, kernel, arrays, pix, t0, t1) -> torch.Tensor:
+        idx = self.index
+        wraps = (t0 < idx.t_start) & idx.loop
+        t0a = torch.where(wraps, torch.full_like(t0, idx.t_start - 1), t0)
+        e = kernel(
+            arrays["offsets"],
+            arrays["times"],
+            arrays["cum_pos"],
+            pix,
+            t0a,
+            t1,
+            idx.pos_threshold,
+            idx.neg_threshold,
+            idx.polarity_offset,
+        )
+        if bool(wraps.any()):
+            t0b = torch.where(wraps, t0 + idx.period, torch.full_like(t0, idx.t_end))
+            e = e + kernel(
+                arrays["offsets"],
+                arrays["times"],
+                arrays["cum_pos"],
+                pix,
+                t0b,
+                torch.full_like(t1, idx.t_end),
+                idx.pos_threshold,
+                idx.neg_threshold,
+                idx.polarity_offset,
+            )
+        return e.float()
+
+    def targets(self, pix: torch.Tensor, t0: np.ndarray, t1: np.ndarray) -> torch.Tensor:
+        """E(u; t0, t1] (B,) float32 on the device; pix (B,), t0/t1 (B,) int64 µs."""
+        if self._kernel is not None:
+            return self._kernel_query(
+                self._kernel,
+                self._kernel_arrays,
+                pix,
+                torch.as_tensor(t0, device=self.device),
+                torch.as_tensor(t1, device=self.device),
+            )
+        e = self.index.query(pix.cpu().numpy(), t0, t1)
+        return torch.from_numpy(e).to(self.device)
+
+    # -- pixels ------------------------------------------------------------------------------
+
+    def event_pixels(self, t0: np.ndarray, t1: np.ndarray, n: int) -> torch.Tensor:
+        """(W, n) pixels of random events in each window (t0, t1] (W,); -1 where none."""
+        t0a, t1a, t0b, t1b = self.index.split_wrapped(t0, t1)
+        q = torch.as_tensor(np.stack([t0a, t1a, t0b, t1b], 1), device=self.device)
+        # Both parts as (t0, t1]: index ranges [i0, i1) of the time-sorted stream.
+        i = torch.searchsorted(self.times_sorted, q.contiguous(), right=True)
+        ca = (i[:, 1] - i[:, 0]).clamp_min(0)
+        cb = (i[:, 3] - i[:, 2]).clamp_min(0)
+        total = ca + cb
+        u = torch.rand(len(t0), n, generator=self.gen, device=self.device, dtype=torch.float64)
+        r = (u * total[:, None]).long().clamp_max((total - 1).clamp_min(0)[:, None])
+        idx = torch.where(r < ca[:, None], i[:, :1] + r, i[:, 2:3] + r - ca[:, None])
+        if len(self.pixels_by_time) == 0:
+            return torch.full_like(idx, -1)
+        pix = self.pixels_by_time[idx.clamp(0, len(self.pixels_by_time) - 1)]
+        return torch.where(total[:, None] > 0, pix, torch.full_like(pix, -1))
+
+    def sample(self) -> RayBatch:
+        """Draw windows, pixels, rays and targets for one step."""
+        j0, j1 = self.windows.sample(self.n_windows)
+        t0, t1 = self.windows.grid_times(j0), self.windows.grid_times(j1)
+        w, n = self.n_windows, self.per_window
+        n_pos = n - self.n_neg
+        uniform = torch.randint(0, self.n_pix, (w, n), generator=self.gen, device=self.device)
+        if n_pos > 0:
+            ev = self.event_pixels(t0, t1, n_pos)
+            positive = torch.cat(
+                [ev >= 0, torch.zeros(w, self.n_neg, dtype=torch.bool, device=self.device)], 1
+            )
+            pix = torch.where(positive, torch.cat([ev, uniform[:, n_pos:]], 1), uniform)
+        else:
+            positive = torch.zeros(w, n, dtype=torch.bool, device=self.device)
+            pix = uniform
+        win = torch.arange(w, device=self.device).repeat_interleave(n)
+        pix = pix.reshape(-1)
+        p0 = torch.as_tensor(self.windows.pose_index(j0), device=self.device)
+        p1 = torch.as_tensor(self.windows.pose_index(j1), device=self.device)
+        dirs = self.dirs[pix]
+        o0, d0 = generate_rays(dirs, self.grid_c2w[p0][win])
+        o1, d1 = generate_rays(dirs, self.grid_c2w[p1][win])
+        win_np = np.repeat(np.arange(w), n)
+        target = self.targets(pix, t0[win_np], t1[win_np])
+        channel = None if self.mono else self.rig.channel(pix)
+        return RayBatch(
+            torch.cat([o0, o1]), torch.cat([d0, d1]), pix, channel, target, positive.reshape(-1), w
+        )
+
+    def state_dict(self) -> dict:
+        return {"windows": self.windows.state_dict(), "gen": self.gen.get_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.windows.load_state_dict(state["windows"])
+        self.gen.set_state(state["gen"].cpu() if hasattr(state["gen"], "cpu") else state["gen"])
