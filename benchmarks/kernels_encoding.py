@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 import torch
+
 from fastenerf.kernels.events import window_sum
 from fastenerf.kernels.hashgrid import (
     HashGridConfig,

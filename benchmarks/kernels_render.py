@@ -22,6 +22,7 @@ import statistics
 import time
 
 import torch
+
 from fastenerf.kernels.composite import T_MIN, composite
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays

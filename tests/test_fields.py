@@ -13,13 +13,13 @@ import math
 import numpy as np
 import pytest
 import torch
-from fastenerf.kernels.hashgrid import grid_indices
 
 from fastenerf.clip import cylinder_mask
 from fastenerf.config import CylinderConfig, TrainConfig
 from fastenerf.fields import field_from_config, make_field
 from fastenerf.fields import ngp as ngp_mod
 from fastenerf.fields.ngp import trunc_exp
+from fastenerf.kernels.hashgrid import grid_indices
 
 BACKENDS = ("ngp", "vanilla")
 SMALL = {
@@ -296,16 +296,7 @@ def test_bf16_autocast_render_is_finite_and_float32(make, backend):
 # positions, whose NaN σ and gradients would reach the weights. The field must refuse them.
 @pytest.mark.parametrize(
     "backend",
-    [
-        "ngp",
-        pytest.param(
-            "vanilla",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="vanilla.render does not validate its rays yet; drop this mark when it does",
-            ),
-        ),
-    ],
+    ["ngp", "vanilla"],
 )
 @pytest.mark.parametrize("bad", ["rays_o", "rays_d"])
 @pytest.mark.parametrize("value", [math.nan, math.inf])

@@ -7,6 +7,7 @@ import random
 
 import pytest
 import torch
+
 from fastenerf.kernels import composite as comp
 from fastenerf.kernels.composite import T_MIN, composite, distortion_loss
 

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import torch
+
 from fastenerf.kernels.events import window_counts, window_sum
 
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+
 from fastenerf.kernels.hashgrid import (
     HashGridConfig,
     _alloc_out,

@@ -14,6 +14,7 @@ import random
 import numpy as np
 import pytest
 import torch
+
 from fastenerf.kernels import raymarch as rm
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays, ray_aabb

@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+
 from fastenerf.kernels.sh import sh_encode
 
 

@@ -14,6 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+
+from fastenerf.data.rig import Intrinsics, look_at
+from fastenerf.fields.base import Field
+from fastenerf.render import render_image
 from fastenerf.viewer.autoscale import AutoScale
 from fastenerf.viewer.camera import (
     OrbitCamera,
@@ -23,10 +27,6 @@ from fastenerf.viewer.camera import (
     scene_up,
 )
 from fastenerf.viewer.tonemap import Exposure, apply_exposure, invert_exposure
-
-from fastenerf.data.rig import Intrinsics, look_at
-from fastenerf.fields.base import Field
-from fastenerf.render import render_image
 
 TESTS = Path(__file__).parent
 
@@ -411,6 +411,7 @@ def test_window_under_xvfb(tmp_path):
 
 def test_screenshot_and_camera_path(tmp_path):
     import imageio.v3 as iio
+
     from fastenerf.viewer.app import Viewer
     from fastenerf.viewer.source import ViewSource
 
@@ -473,10 +474,10 @@ TINY_VANILLA = dict(depth=2, width=32, skip=8, pos_freqs=4, dir_freqs=2, n_coars
 
 def test_train_while_viewing_then_view_the_run(tmp_path):
     import imageio.v3 as iio
-    from fastenerf.viewer.frame import ViewSettings, render_raw
-    from fastenerf.viewer.source import ViewSource
 
     from fastenerf.cli import main
+    from fastenerf.viewer.frame import ViewSettings, render_raw
+    from fastenerf.viewer.source import ViewSource
 
     scene = _tiny_scene(tmp_path / "scene")
     run = tmp_path / "run"
@@ -540,9 +541,8 @@ def test_train_while_viewing_then_view_the_run(tmp_path):
 
 
 def test_occupancy_mode_reads_the_ngp_grid():
-    from fastenerf.viewer.frame import ViewSettings, render_raw
-
     from fastenerf.fields.ngp import NGPField, NGPOptions
+    from fastenerf.viewer.frame import ViewSettings, render_raw
 
     f = NGPField([-1, -1, -1, 1, 1, 1], NGPOptions(log2_table_size=12, grid_resolution=16))
     g = f.grid

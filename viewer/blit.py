@@ -149,6 +149,7 @@ class InteropTexture(FrameTexture):
 
     def upload(self, img: torch.Tensor) -> None:
         import warp as wp
+
         from fastenerf.kernels.common import device_of, init, stream_of
 
         init()

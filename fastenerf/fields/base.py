@@ -11,6 +11,8 @@ from typing import TypedDict
 
 import torch
 
+from ..errors import InputError
+
 
 class RenderOutput(TypedDict, total=False):
     rgb: torch.Tensor  # (R, 3) display-space colour in [0, 1], composited over the background
@@ -33,7 +35,7 @@ class Field(torch.nn.Module):
         raise NotImplementedError
 
     def color(self, x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        """Display-space colour (N, 3) in [0, 1] at points x (N, 3) seen along unit dirs d (N, 3)."""
+        """Display-space colour (N, 3) in [0, 1] at points x (N, 3) along unit dirs d (N, 3)."""
         raise NotImplementedError
 
     def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, *, near: float,
@@ -51,3 +53,16 @@ class Field(torch.nn.Module):
     def config_dict(self) -> dict:
         """The constructor arguments, saved in checkpoints so a run can rebuild its field."""
         raise NotImplementedError
+
+
+def check_points(name: str, v: torch.Tensor, where: str) -> None:
+    """Reject what would corrupt the weights: a NaN point reaches the hash-grid backward as a
+    NaN gradient, and one NaN row poisons Adam's moments for good (DESIGN §5)."""
+    if v.ndim != 2 or v.shape[-1] != 3:
+        raise InputError(f"{where}: {name} must be (N, 3), got {tuple(v.shape)}")
+    bad = ~torch.isfinite(v).all(-1)
+    if bool(bad.any()):
+        raise InputError(
+            f"{where}: {name} has NaN or inf in {int(bad.sum())} of {len(v)} rows "
+            f"(first at row {int(bad.nonzero()[0, 0])})"
+        )

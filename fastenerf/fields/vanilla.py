@@ -20,7 +20,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from .base import Field, RenderOutput
+from ..clip import clip_density
+from .base import Field, RenderOutput, check_points
 
 
 class PositionalEncoding(nn.Module):
@@ -201,9 +202,7 @@ class VanillaField(Field):
             else nn.functional.softplus(raw - 1.0)
         )
         if self.cylinder is not None:
-            r, y0, y1 = self.cylinder
-            inside = ((x[:, 0] ** 2 + x[:, 2] ** 2) <= r * r) & (x[:, 1] >= y0) & (x[:, 1] <= y1)
-            sigma = sigma * inside
+            sigma = clip_density(sigma, x, self.cylinder)
         return sigma, rgb
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
@@ -227,6 +226,8 @@ class VanillaField(Field):
         train: bool,
     ) -> RenderOutput:
         """Volume-render rays (R, 3) each; adds `rgb_coarse` (R, 3) for the coarse-level loss."""
+        check_points("rays_o", rays_o, "VanillaField.render")
+        check_points("rays_d", rays_d, "VanillaField.render")
         n_rays = rays_o.shape[0]
         t_near, t_far = ray_aabb(rays_o, rays_d, self.aabb)
         t_near = t_near.clamp_min(near)
