@@ -68,5 +68,6 @@ def tiny_scene(tmp_path_factory):
     64x48, 100 frames (a 0.1 s loop), RGGB, test view every 10th frame."""
     from fastenerf.data.synth import DEFAULT_SCENE, make_scene
 
-    return make_scene(DEFAULT_SCENE, tmp_path_factory.mktemp("tiny") / "scene", width=64,
-                      height=48, frames=100)
+    return make_scene(
+        DEFAULT_SCENE, tmp_path_factory.mktemp("tiny") / "scene", width=64, height=48, frames=100
+    )

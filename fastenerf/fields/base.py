@@ -38,8 +38,15 @@ class Field(torch.nn.Module):
         """Display-space colour (N, 3) in [0, 1] at points x (N, 3) along unit dirs d (N, 3)."""
         raise NotImplementedError
 
-    def render(self, rays_o: torch.Tensor, rays_d: torch.Tensor, *, near: float,
-               background: torch.Tensor | None, train: bool) -> RenderOutput:
+    def render(
+        self,
+        rays_o: torch.Tensor,
+        rays_d: torch.Tensor,
+        *,
+        near: float,
+        background: torch.Tensor | None,
+        train: bool,
+    ) -> RenderOutput:
         """Volume-render rays: rays_o (R, 3) world units, rays_d (R, 3) unit.
 
         background: (3,) display-space colour composited behind the field, or None (black,
