@@ -31,8 +31,8 @@ import torch
 
 from .config import SceneConfig, TrainConfig
 from .data.events import EventIndex
-from .data.formats.native import Scene, load_scene
-from .data.rig import Intrinsics, Rig
+from .data.formats.native import Scene
+from .data.rig import Intrinsics
 from .errors import InputError
 from .fields import Field, field_from_config, make_field
 from .io import atomic_path, write_json
@@ -121,7 +121,7 @@ class Trainer:
         np.random.seed(seed)
         torch.manual_seed(seed)
 
-        self.rig = Rig.from_scene(sc, scene.root)
+        self.rig = scene.rig()
         self.index = EventIndex(
             scene.events,
             sc.pos_threshold,
@@ -660,9 +660,11 @@ def load_run(
     field.to(dev).eval()
     scene: Scene | SceneConfig = sc
     scene_dir = Path(conf.get("scene_dir", ""))
-    if scene_dir.is_dir() and (scene_dir / "scene.json").is_file():
+    if scene_dir.is_dir():
+        from .data.formats import load_scene_folder
+
         try:
-            scene = load_scene(scene_dir)
+            scene = load_scene_folder(scene_dir)
         except InputError:
             scene = sc
     return field, scene, cfg

@@ -94,11 +94,11 @@ def build_config(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..data.formats.native import load_scene
+    from ..data.formats import load_scene_folder
     from ..train import Trainer
 
     cfg = build_config(args)
-    scene = load_scene(args.scene)
+    scene = load_scene_folder(args.scene)
     trainer = Trainer(scene, cfg, args.out, resume=args.resume)
     c = trainer.cfg
     budget = f"{c.steps} steps" if c.steps is not None else f"{c.minutes:g} min"

@@ -93,3 +93,12 @@ def _infer_sensor(raw: dict) -> tuple[int, int]:
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
         return 1, 1
     return int(max(x.max(), 0)) + 1, int(max(y.max(), 0)) + 1
+
+
+def load_scene_folder(path: str | Path) -> Scene:
+    """A scene to train on: a native scene folder or an EventNeRF dataset folder."""
+    path = Path(path)
+    scene, _ = open_any(path)
+    if not isinstance(scene, Scene):
+        raise InputError(f"{path}: an event file, not a scene folder (no poses or intrinsics)")
+    return scene
