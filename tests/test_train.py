@@ -457,3 +457,22 @@ def test_eventnerf_folder_trains_through_its_reader(tmp_path, capsys):
     assert cfg["scene"]["trajectory"]["kind"] == "timed"
     progress = json.loads((run / "progress.json").read_text())
     assert progress["step"] == 3
+    # the orbit comes from the in-memory poses of the EventNeRF reader (no poses file there)
+    frames = tmp_path / "orbit"
+    assert (
+        main(
+            [
+                "render",
+                str(run),
+                "--orbit",
+                "2",
+                "--scale",
+                "0.1",
+                "--out",
+                str(frames),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    assert len(list(frames.rglob("*.png"))) >= 2

@@ -23,10 +23,10 @@ from fastenerf.errors import InputError
 from .camera import OrbitCamera, scene_up
 
 
-def pose_grid(cfg, root: str | Path | None = None) -> np.ndarray:
+def pose_grid(cfg, root: str | Path | None = None, poses=None) -> np.ndarray:
     """The scene's `n_views` poses, uniform in time over [t_start, t_end) (closed loops) or
     [t_start, t_end]: (n_views, 4, 4) float64 c2w."""
-    rig = Rig.from_scene(cfg, root)
+    rig = Rig.from_scene(cfg, root, poses)  # poses: in memory (EventNeRF folders)
     t = np.linspace(cfg.t_start_us, cfg.t_end_us, cfg.n_views, endpoint=not cfg.loop)
     return rig.pose(np.round(t).astype(np.int64))
 
@@ -206,7 +206,7 @@ class ViewSource:
         self.name = cfg.name
         grid = None
         try:
-            grid = pose_grid(cfg, root)
+            grid = pose_grid(cfg, root, getattr(scene, "poses", None))
         except InputError:
             pass  # a timed trajectory whose poses file is not reachable from here
         test = getattr(scene, "test_c2w", None)

@@ -37,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def orbit_poses(scene_cfg, n: int, root=None) -> np.ndarray:
+def orbit_poses(scene_cfg, n: int, root=None, poses=None) -> np.ndarray:
     """n camera-to-world (n, 4, 4) around the scene.
 
     A looped capture's own trajectory sampled uniformly over one loop (that is an orbit of
@@ -46,7 +46,7 @@ def orbit_poses(scene_cfg, n: int, root=None) -> np.ndarray:
     """
     from ..data.rig import Rig, look_at
 
-    rig = Rig.from_scene(scene_cfg, root)
+    rig = Rig.from_scene(scene_cfg, root, poses)  # poses: in memory (EventNeRF folders)
     t0, t1 = scene_cfg.t_start_us, scene_cfg.t_end_us
     if scene_cfg.loop:
         return rig.pose(t0 + (np.arange(n) * (t1 - t0)) / n)
@@ -144,7 +144,7 @@ def render_path(
     field, scene, cfg = load_run(run_dir)
     sc, root = (scene.config, scene.root) if isinstance(scene, Scene) else (scene, None)
     if c2w is None:
-        c2w = orbit_poses(sc, orbit, root)
+        c2w = orbit_poses(sc, orbit, root, getattr(scene, "poses", None))
     intr = Intrinsics.from_config(sc.intrinsics, sc.width, sc.height)
     if scale != 1.0:
         intr = intr.scaled(scale)
