@@ -9,12 +9,12 @@ GB/s, next to the device's measured copy bandwidth (DESIGN §8). They run on CPU
 import argparse
 import itertools
 import json
-import statistics
 import time
 
 import numpy as np
 import torch
 
+from benchmarks.timing import copy_bandwidth_gbs, time_ms
 from fastenerf.kernels.events import window_sum
 from fastenerf.kernels.hashgrid import (
     HashGridConfig,
@@ -28,41 +28,7 @@ P1, P2, M32 = 2654435761, 805459861, 0xFFFFFFFF
 
 
 def _time_ms(fn, device: str, repeats: int, warmup: int = 3, inner: int = 10) -> float:
-    """Median time per fn() call in ms.
-
-    On CUDA, `inner` calls are queued back to back between two events (so the host's launch
-    overhead overlaps the GPU work, as in a training loop) and the median over `repeats` such
-    batches is divided by `inner`; `launch_overhead_us` reports the host cost separately.
-    """
-    for _ in range(warmup):
-        fn()
-    times = []
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
-        for _ in range(repeats):
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            for _ in range(inner):
-                fn()
-            b.record()
-            b.synchronize()
-            times.append(a.elapsed_time(b) / inner)
-    else:
-        for _ in range(repeats):
-            t = time.perf_counter()
-            fn()
-            times.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(times)
-
-
-def copy_bandwidth_gbs(device: str, n_bytes: int = 2**30) -> float:
-    """Device-to-device copy rate, bytes read + written per second, in GB/s."""
-    if not str(device).startswith("cuda"):
-        n_bytes = 2**24
-    a = torch.empty(n_bytes // 4, dtype=torch.float32, device=device).uniform_()
-    b = torch.empty_like(a)
-    ms = _time_ms(lambda: b.copy_(a), device, repeats=10)
-    return 2 * n_bytes / ms * 1e-6
+    return time_ms(fn, device, repeats, warmup, inner)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -18,46 +18,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import statistics
-import time
 
 import torch
 
+from benchmarks.timing import copy_bandwidth_gbs, time_ms
 from fastenerf.kernels.composite import T_MIN, composite
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays
 
 
-def _time_ms(fn, device: str, repeats: int, warmup: int = 2) -> float:
-    """Median wall time of fn() in ms (CUDA events on GPU)."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    if str(device).startswith("cuda"):
-        torch.cuda.synchronize()
-        for _ in range(repeats):
-            a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-            a.record()
-            fn()
-            b.record()
-            b.synchronize()
-            times.append(a.elapsed_time(b))
-    else:
-        for _ in range(repeats):
-            t = time.perf_counter()
-            fn()
-            times.append((time.perf_counter() - t) * 1e3)
-    return statistics.median(times)
-
-
-def copy_bandwidth_gbs(device: str, n_bytes: int = 2**30) -> float:
-    """Device-to-device copy rate, bytes read + written per second, in GB/s."""
-    if not str(device).startswith("cuda"):
-        n_bytes = 2**24
-    a = torch.empty(n_bytes // 4, dtype=torch.float32, device=device).uniform_()
-    b = torch.empty_like(a)
-    ms = _time_ms(lambda: b.copy_(a), device, repeats=10)
-    return 2 * n_bytes / ms * 1e-6
+def _time_ms(fn, device: str, repeats: int, warmup: int = 3, inner: int = 1) -> float:
+    return time_ms(fn, device, repeats, warmup, inner)
 
 
 # ---------------------------------------------------------------------------------------------

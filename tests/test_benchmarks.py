@@ -228,3 +228,15 @@ def test_knobs_two_variants(tiny_scene, tmp_path):
     md = (out / "knobs.md").read_text()
     assert "**default**" in md and "dt_min_x2" in md and "CPU numbers" in md
     assert np.isfinite(rows["dt_min_x2"]["psnr"])
+
+
+def test_kernel_benchmark_table_on_cpu(tmp_path):
+    """`python -m benchmarks.kernels` at tiny CPU sizes: every op timed against PyTorch."""
+    from benchmarks import kernels
+
+    assert kernels.main(["--device", "cpu", "--out", str(tmp_path)]) == 0
+    md = (tmp_path / "kernels.md").read_text()
+    for label, *_ in kernels.ROWS:
+        assert f"| {label} |" in md
+    res = json.loads((tmp_path / "kernels.json").read_text())
+    assert res["hashgrid"]["max_abs_err"] < 1e-5 and res["copy_GBps"] > 0
