@@ -98,3 +98,36 @@ def _json_default(o: Any) -> Any:
     if isinstance(o, Path):
         return str(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def read_npz(
+    path: str | os.PathLike,
+    required: tuple[str, ...],
+    optional: tuple[str, ...] = (),
+    what: str = "npz file",
+) -> dict[str, np.ndarray]:
+    """The arrays `required` (and those of `optional` present) of an npz, loaded eagerly.
+
+    Every problem is one `InputError` naming the file: missing, truncated or corrupt,
+    missing arrays. `what` names the file's role in the messages ("poses file", ...).
+    """
+    import zipfile
+    import zlib
+
+    from .errors import InputError
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = [k for k in required if k not in z.files]
+            if missing:
+                raise InputError(
+                    f"{path}: missing array(s) {missing} (a {what} needs {', '.join(required)})"
+                )
+            return {k: z[k] for k in (*required, *optional) if k in z.files}
+    except InputError:
+        raise
+    except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as e:
+        raise InputError(f"{path}: cannot read {what} (truncated or corrupt: {e})") from None

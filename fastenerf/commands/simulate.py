@@ -62,13 +62,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import zipfile
 
     import numpy as np
 
     from ..data.synth.simulator import EventSimulator, SimulatorConfig
     from ..errors import InputError
-    from ..io import savez
+    from ..io import read_npz, savez
 
     cfg = SimulatorConfig(
         pos_threshold=args.threshold,
@@ -80,17 +79,8 @@ def run(args: argparse.Namespace) -> int:
         noise=args.noise,
         seed=args.seed,
     ).validate()
-    try:
-        with np.load(args.frames, allow_pickle=False) as z:
-            if "frames" not in z.files or "t" not in z.files:
-                raise InputError(f"{args.frames}: needs arrays 'frames' and 't' (seconds)")
-            frames, t = z["frames"], z["t"]
-    except InputError:
-        raise
-    except FileNotFoundError:
-        raise InputError(f"{args.frames}: frames file not found") from None
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-        raise InputError(f"{args.frames}: cannot read npz ({e})") from None
+    z = read_npz(args.frames, ("frames", "t"), what="frames file")
+    frames, t = z["frames"], z["t"]
     if frames.ndim not in (3, 4) or len(frames) < 2 or frames.dtype.kind not in "fiu":
         raise InputError(
             f"{args.frames}: 'frames' must be (N, H, W, 3) or (N, H, W) numbers, "

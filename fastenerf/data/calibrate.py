@@ -108,21 +108,11 @@ class TurntableFit:
 
 def load_calibration_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a poses npz: `c2w` (M, 4, 4) and optional `t` (M,) µs. One-line errors."""
-    import zipfile
+    from ..io import read_npz
 
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if "c2w" not in z.files:
-                raise InputError(f"{path}: poses file needs an array 'c2w' (M, 4, 4)")
-            c2w = z["c2w"]
-            t = z["t"] if "t" in z.files else None
-    except InputError:
-        raise
-    except FileNotFoundError:
-        raise InputError(f"{path}: poses file not found") from None
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-        raise InputError(f"{path}: cannot read poses (truncated or corrupt: {e})") from None
+    z = read_npz(path, ("c2w",), ("t",), what="poses file")
+    c2w, t = z["c2w"], z.get("t")
     if t is not None and t.shape != (len(c2w),):
         raise InputError(f"{path}: {len(c2w)} poses but 't' has shape {t.shape}")
     return np.asarray(c2w, np.float64), (None if t is None else t.astype(np.int64))

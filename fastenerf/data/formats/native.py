@@ -13,8 +13,6 @@ SCENE/
 
 from __future__ import annotations
 
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +20,7 @@ import numpy as np
 
 from ...config import SceneConfig
 from ...errors import InputError
-from ...io import atomic_path, savez, write_image
+from ...io import atomic_path, read_npz, savez, write_image
 from ..events import EventStream
 
 EVENT_KEYS = ("x", "y", "t", "p")
@@ -73,16 +71,7 @@ def read_event_arrays(path: str | Path) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise InputError(f"{path}: events file not found")
     if path.suffix == ".npz":
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                missing = [k for k in EVENT_KEYS if k not in z.files]
-                if missing:
-                    raise InputError(f"{path}: missing array(s) {missing} (needs x, y, t, p)")
-                return {k: z[k] for k in (*EVENT_KEYS, *SIZE_KEYS) if k in z.files}
-        except InputError:
-            raise
-        except (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError) as e:
-            raise InputError(f"{path}: cannot read npz (truncated or corrupt: {e})") from None
+        return read_npz(path, EVENT_KEYS, SIZE_KEYS, what="events file")
     if path.suffix in (".h5", ".hdf5"):
         import h5py
 
@@ -136,17 +125,8 @@ def write_events(path: str | Path, ev: EventStream) -> Path:
 def load_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(t (M,) int64 µs, c2w (M, 4, 4) float64) from a poses npz, validated."""
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if "t" not in z.files or "c2w" not in z.files:
-                raise InputError(f"{path}: poses file needs arrays 't' and 'c2w'")
-            t, c2w = z["t"], z["c2w"]
-    except InputError:
-        raise
-    except FileNotFoundError:
-        raise InputError(f"{path}: poses file not found") from None
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError) as e:
-        raise InputError(f"{path}: cannot read poses (truncated or corrupt: {e})") from None
+    z = read_npz(path, ("t", "c2w"), what="poses file")
+    t, c2w = z["t"], z["c2w"]
     if c2w.ndim != 3 or c2w.shape[1:] != (4, 4):
         raise InputError(f"{path}: 'c2w' must be (M, 4, 4), got {c2w.shape}")
     if t.shape != (len(c2w),):
