@@ -50,6 +50,17 @@ def test_schedule_is_geometric_and_ends_at_the_budget():
     assert evt.schedule(480)[-3:] == [120, 300, 480]
     assert evt.schedule(3, first_s=0.25) == [0.25, 0.5, 1, 2, 3]
     assert evt.schedule(0.3) == [0.3]
+    dense = evt.schedule(300, ladder="dense")
+    assert dense[:5] == [1, 1.5, 2, 3, 4] and dense[-1] == 300
+    # ~6 points a decade: neighbours at most 1.5x apart, so a crossing is bracketed within 1.5x
+    assert max(b / a for a, b in zip(dense, dense[1:], strict=False)) <= 1.5
+    assert evt.parse_schedules(["vanilla=dense"], ["ngp", "vanilla"]) == {
+        "ngp": "dense",
+        "vanilla": "dense",
+    }
+    for bad in (["sparse"], ["foo=dense"]):
+        with pytest.raises(evt.InputError):
+            evt.parse_schedules(bad, ["ngp", "vanilla"])
 
 
 def test_budget_preset_and_set_parsing():
@@ -90,6 +101,14 @@ def test_summary_speedup_time_to_psnr_and_60s_gap():
     assert c["vanilla_best_psnr"] == 24.0 and c["vanilla_time_to_best_s"] == 479.9
     assert c["ngp_time_to_same_s"] == 2.2  # first point at or above 24 dB
     assert c["speedup"] == pytest.approx(479.9 / 2.2)
+    # the crossing lies between the 1.1 s (20 dB) and 2.2 s (24.5 dB) points: 8/9 of the way
+    # in log time; the bracket gives the speed-up's upper bound
+    assert c["ngp_time_to_same_lower_s"] == 1.1
+    t = math.exp(math.log(1.1) + 8 / 9 * (math.log(2.2) - math.log(1.1)))
+    assert c["ngp_time_to_same_interp_s"] == pytest.approx(t)
+    assert c["speedup_interp"] == pytest.approx(479.9 / t)
+    assert c["speedup_upper"] == pytest.approx(479.9 / 1.1)
+    assert c["speedup"] < c["speedup_interp"] < c["speedup_upper"]
     g = s["ngp_60s"]
     assert g["psnr_at_60s"] == 28.0 and g["gap_db"] == pytest.approx(0.3) and g["met"]
     # ngp never reaching vanilla's best is reported as such, not as a number
@@ -115,7 +134,9 @@ def test_summary_speedup_time_to_psnr_and_60s_gap():
             "summary": {"s": s, "slow": s2},
         }
     )
-    assert "218.1× (met)" in md and "not reached" in md and "+0.30 dB (met)" in md
+    assert (
+        "≥ 218.1× (met; 236× interpolated)" in md and "not reached" in md and "+0.30 dB (met)" in md
+    )
 
 
 def _read(out):
@@ -240,3 +261,21 @@ def test_kernel_benchmark_table_on_cpu(tmp_path):
         assert f"| {label} |" in md
     res = json.loads((tmp_path / "kernels.json").read_text())
     assert res["hashgrid"]["max_abs_err"] < 1e-5 and res["copy_GBps"] > 0
+
+
+def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
+    from benchmarks import profile_step as ps
+
+    assert ps.kernel_kind("march_kernel_cuda_kernel_forward") == "march"
+    assert ps.kernel_kind("sm90_xmma_gemm_bf16bf16_bf16f32") == "mlp"
+    assert ps.kernel_kind("void at::native::vectorized_elementwise_kernel") == "torch other"
+    out = tmp_path / "prof"
+    argv = ["--scene", str(tiny_scene), "--device", "cpu", "--warmup", "1", "--steps", "2"]
+    assert ps.main(argv + ["--out", str(out), "--quiet"]) == 0
+    res = json.loads((out / "profile_step.json").read_text())
+    # every stage of an ngp step was seen by the profiler, and the stages fit in the step
+    for stage in ("sample_rays", "render", "march", "field", "composite", "backward", "optimizer"):
+        assert res["host_ms"][stage] > 0, stage
+    assert res["host_ms"]["render"] < res["wall_ms"]
+    assert res["samples_per_step"] > 0 and res["session"]["machine"]["cpu_numbers"]
+    assert "CPU numbers" in (out / "profile_step.md").read_text()

@@ -556,3 +556,14 @@ def test_occupancy_mode_reads_the_ngp_grid():
     assert hit[10, 10] and hit.sum() < 21 * 21 / 2
     # the first sample inside the cell: its front face is at z = 0.125, 2.875 from the eye
     assert abs(float(raw["depth"][10, 10]) - 2.875) <= 1 / 16 / 2 + 1e-4
+
+
+def test_bench_viewer_render_only_and_through_gl(tmp_path):
+    from fastenerf.viewer.bench import bench_viewer
+
+    f = SphereField(n_samples=8)
+    res = bench_viewer(f, size=(40, 30), frames=2, warmup=1, chunk=300, gl=False)
+    assert res["chunk"] == 300 and res["render_fps"] > 0 and "full_fps" not in res
+    _egl_or_skip().release()
+    res = bench_viewer(f, size=(40, 30), frames=2, warmup=1)
+    assert res["full_fps"] > 0 and res["upload_exact"], res

@@ -7,7 +7,11 @@ frames at `size` and reports frames per second for:
   a textured quad drawn into a framebuffer, `glFinish`), i.e. what a window shows;
 `bench_upload(size)` times the display path alone, pinned vs pageable host memory.
 
-    python -m fastenerf.viewer.bench RUN_DIR [--size 800x600] [--frames 100]
+`--chunk` renders with several ray-chunk sizes (rays per `Field.render` call) and reports each;
+`--no-gl` measures the render path alone (a machine without an EGL driver).
+
+    python -m fastenerf.viewer.bench RUN_DIR [--size 800x600] [--frames 100] \
+        [--chunk 65536 262144] [--no-gl] [--out RESULT.json]
 """
 
 from __future__ import annotations
@@ -31,8 +35,14 @@ def bench_viewer(
     frames: int = 100,
     warmup: int = 3,
     mode: str = "rgb",
+    chunk: int | None = None,
+    gl: bool = True,
 ) -> dict:
-    """Frames per second of the viewer at `size` (W, H) pixels; see the module docstring."""
+    """Frames per second of the viewer at `size` (W, H) pixels; see the module docstring.
+
+    chunk: rays per render call (default the viewer's, `ViewSettings.chunk`); gl: False skips
+    the display path (render-only numbers; the full_* and upload_* keys are then absent).
+    """
     from fastenerf.render import field_device
 
     from .blit import FrameTexture, Offscreen, headless_context
@@ -49,9 +59,11 @@ def bench_viewer(
     fov = fov_y_of(src.intrinsics) if src.intrinsics is not None else 50.0
     intr = intrinsics_for_fov(size[0], size[1], fov)
     s = ViewSettings(mode=mode, near=src.near, background=src.background)
-    ctx = headless_context()
-    tex = FrameTexture(ctx)
-    off = Offscreen(ctx, size)
+    if chunk is not None:
+        s.chunk = int(chunk)
+    ctx = headless_context() if gl else None
+    tex = FrameTexture(ctx) if gl else None
+    off = Offscreen(ctx, size) if gl else None
 
     def run(n: int, full: bool) -> float:
         cam = src.default_camera()
@@ -67,22 +79,28 @@ def bench_viewer(
                 _sync(dev)
         return time.perf_counter() - t
 
-    run(warmup, True)
+    run(warmup, gl)
     t_render = run(frames, False)
+    res = {
+        "size": list(size),
+        "frames": frames,
+        "device": str(dev),
+        "mode": mode,
+        "chunk": s.chunk,
+        "render_fps": frames / t_render,
+        "render_ms": 1e3 * t_render / frames,
+    }
+    if not gl:
+        return res
     t_full = run(frames, True)
     up = bench_upload(size, frames=max(frames, 50), device=dev, ctx=ctx)
     off.release()
     tex.release()
     ctx.release()
     return {
-        "size": list(size),
-        "frames": frames,
-        "device": str(dev),
-        "mode": mode,
+        **res,
         "gl_renderer": up["gl_renderer"],
-        "render_fps": frames / t_render,
         "full_fps": frames / t_full,
-        "render_ms": 1e3 * t_render / frames,
         "full_ms": 1e3 * t_full / frames,
         **{k: v for k, v in up.items() if k.startswith("upload")},
     }
@@ -155,24 +173,40 @@ def gl_read(off, tex, ctx) -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> None:
     import argparse
-    import json
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("run", nargs="?", help="run folder (omit for the upload benchmark alone)")
     p.add_argument("--size", default="800x600")
     p.add_argument("--frames", type=int, default=100)
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--chunk", type=int, nargs="+", default=[None], help="rays per render call")
+    p.add_argument("--no-gl", action="store_true", help="render path only (no EGL context)")
+    p.add_argument("--out", help="also write the result(s) to this JSON file")
     a = p.parse_args(argv)
+    from fastenerf.errors import FastenerfError
+
+    try:
+        run(a)
+    except FastenerfError as e:
+        raise SystemExit(f"viewer.bench: error: {e}") from None
+
+
+def run(a) -> None:
+    import json
+
     size = tuple(int(v) for v in a.size.split("x"))
     if a.run:
-        res = bench_viewer(a.run, size, a.frames)
+        res = [bench_viewer(a.run, size, a.frames, chunk=c, gl=not a.no_gl) for c in a.chunk]
     else:
-        res = {"size": list(size), "device": a.device, **bench_upload(size, a.frames, a.device)}
-    print(
-        json.dumps(
-            {k: (round(v, 3) if isinstance(v, float) else v) for k, v in res.items()}, indent=1
-        )
-    )
+        res = [{"size": list(size), "device": a.device, **bench_upload(size, a.frames, a.device)}]
+    res = [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()} for r in res]
+    text = json.dumps(res if len(res) > 1 else res[0], indent=1)
+    if a.out:
+        from fastenerf.io import atomic_path
+
+        with atomic_path(a.out) as tmp:
+            tmp.write_text(text)
+    print(text)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from torch import nn
+from torch.profiler import record_function
 
 from ..clip import clip_density
 from ..config import CylinderConfig, SceneConfig
@@ -217,7 +218,7 @@ class NGPField(Field):
         opt = self.options
         rays_o = rays_o.float().contiguous()
         rays_d = rays_d.float().contiguous()
-        with torch.no_grad():
+        with torch.no_grad(), record_function("march"):
             jitter = torch.rand(len(rays_o), device=rays_o.device) if train else None
             packed_info, t_starts, t_ends, ray_idx = march_rays(
                 rays_o,
@@ -230,12 +231,14 @@ class NGPField(Field):
                 max_samples=opt.max_samples,
                 jitter=jitter,
             )
-        ri = ray_idx.long()
-        t_mid = (0.5 * (t_starts + t_ends))[:, None]
-        x = rays_o[ri] + rays_d[ri] * t_mid
-        sigma, geo = self._geometry(x)
-        rgb = self._radiance(geo, rays_d[ri])
-        out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
+        with record_function("field"):
+            ri = ray_idx.long()
+            t_mid = (0.5 * (t_starts + t_ends))[:, None]
+            x = rays_o[ri] + rays_d[ri] * t_mid
+            sigma, geo = self._geometry(x)
+            rgb = self._radiance(geo, rays_d[ri])
+        with record_function("composite"):
+            out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
         res: RenderOutput = {
             "rgb": out["rgb"],
             "depth": out["depth"],

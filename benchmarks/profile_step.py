@@ -1,0 +1,215 @@
+"""Where one training step's time goes: a torch.profiler trace of `Trainer.step()`.
+
+    python -m benchmarks.profile_step --scene DIR [--backend ngp] [--preset fast] \
+        [--warmup 200] [--steps 50] [--device cuda] [--out OUT]
+
+The trainer takes `--warmup` steps first (kernel compilation, occupancy-grid warm-up, the
+allocator's pools), then `--steps` steps run under the profiler. Reported per step:
+- wall: host time of `Trainer.step()` (the synchronised clock of benchmarks.error_vs_time);
+- host stages: inclusive CPU time of the named ranges the trainer and the ngp field open
+  (grid_update, sample_rays, render > march / field / composite, loss, backward, optimizer);
+- device (CUDA only): kernel time by kind — every kernel's name sorted into the op that
+  launched it (Warp kernels by their Python names, cuBLAS GEMMs as "mlp", the fused Adam as
+  "optimizer", the remaining PyTorch element-wise and reduction kernels as "torch other"),
+  and the device's busy share of the wall time (kernel time / wall; low means the step waits on
+  the host: launches, Python, a sync).
+
+Outputs in OUT: profile_step.json and profile_step.md (the table for benchmarks/RESULTS.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from benchmarks.error_vs_time import jsonable, load_scene_dir, make_config, session_info, sync
+from fastenerf.errors import FastenerfError, InputError
+from fastenerf.io import atomic_path, write_json
+
+STAGES = (
+    "grid_update",
+    "sample_rays",
+    "render",
+    "march",
+    "field",
+    "composite",
+    "loss",
+    "backward",
+    "optimizer",
+)
+# Kernel name -> kind, first match wins. Warp names a kernel after its Python function.
+KERNEL_KINDS = (
+    ("march", r"march|ray_aabb"),
+    ("hash grid", r"hash|grid_encode"),
+    ("spherical harmonics", r"(^|_)sh_|spherical"),
+    ("composite", r"composite|distortion"),
+    ("occupancy grid", r"occup|bitfield|mark_unseen|grid_update|_cells"),
+    ("event targets", r"window|event|bayer"),
+    ("mlp", r"gemm|cutlass|xmma|nvjet|cublas|sm\d+_"),
+    ("optimizer", r"adam|multi_tensor|foreach"),
+)
+
+
+def kernel_kind(name: str) -> str:
+    """The op a CUDA kernel belongs to (see KERNEL_KINDS), else "torch other"."""
+    low = name.lower()
+    for kind, pattern in KERNEL_KINDS:
+        if re.search(pattern, low):
+            return kind
+    return "torch other"
+
+
+def _device_time_us(ev) -> float:
+    for attr in ("self_device_time_total", "self_cuda_time_total"):
+        v = getattr(ev, attr, None)
+        if v is not None:
+            return float(v)
+    return 0.0
+
+
+def profile_steps(trainer, steps: int) -> dict[str, Any]:
+    """Run `steps` steps of `trainer` under torch.profiler; returns the per-step breakdown."""
+    from torch.profiler import ProfilerActivity, profile
+
+    dev = trainer.device
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    sync(dev)
+    wall = []
+    with profile(activities=acts) as prof:
+        for _ in range(steps):
+            t = time.perf_counter()
+            trainer.step()
+            sync(dev)
+            wall.append(time.perf_counter() - t)
+    host = dict.fromkeys(STAGES, 0.0)
+    kinds: dict[str, float] = {}
+    top: dict[str, float] = {}
+    for ev in prof.key_averages():
+        if ev.key in host:
+            host[ev.key] += ev.cpu_time_total / 1e3  # inclusive, ms over all steps
+    if dev.type == "cuda":
+        for ev in prof.events():
+            if getattr(ev, "device_type", None) != torch.autograd.DeviceType.CUDA:
+                continue
+            us = _device_time_us(ev)
+            if not us:
+                continue
+            kinds[kernel_kind(ev.name)] = kinds.get(kernel_kind(ev.name), 0.0) + us / 1e3
+            top[ev.name] = top.get(ev.name, 0.0) + us / 1e3
+    wall_ms = 1e3 * sum(wall) / steps
+    device_ms = sum(kinds.values()) / steps
+    return {
+        "steps": steps,
+        "wall_ms": wall_ms,
+        "host_ms": {k: v / steps for k, v in host.items()},
+        "device_ms": {k: v / steps for k, v in sorted(kinds.items(), key=lambda kv: -kv[1])},
+        "device_busy_ms": device_ms if dev.type == "cuda" else None,
+        "device_busy_share": device_ms / wall_ms if dev.type == "cuda" else None,
+        "top_kernels_ms": {
+            k[:120]: v / steps for k, v in sorted(top.items(), key=lambda kv: -kv[1])[:15]
+        },
+    }
+
+
+def markdown(res: dict) -> str:
+    m = res["session"]["machine"]["name"]
+    cpu = res["session"]["machine"]["cpu_numbers"]
+    lines = [
+        f"### Training step profile — {res['scene']}, {res['backend']} ({res['preset']}), {m}",
+        "",
+    ]
+    if cpu:
+        lines += ["**CPU numbers**: not comparable with GPU step times.", ""]
+    samples = res.get("samples_per_step")
+    lines += [
+        f"{res['steps']} steps after {res['warmup']} warm-up steps; "
+        f"{res['rays_per_step']} rays/step"
+        + (f", {samples:,.0f} samples/step" if samples else "")
+        + f"; **{res['wall_ms']:.2f} ms/step** wall"
+        + (
+            f", device busy {res['device_busy_ms']:.2f} ms ({100 * res['device_busy_share']:.0f} %)"
+            if res["device_busy_ms"] is not None
+            else ""
+        )
+        + ".",
+        "",
+        "| host stage (inclusive CPU time) | ms/step |",
+        "|---|---:|",
+    ]
+    for k, v in res["host_ms"].items():
+        indent = "  ↳ " if k in ("march", "field", "composite") else ""
+        lines.append(f"| {indent}{k} | {v:.2f} |")
+    if res["device_ms"]:
+        lines += ["", "| device kernels by op | ms/step | share |", "|---|---:|---:|"]
+        tot = sum(res["device_ms"].values()) or 1.0
+        for k, v in res["device_ms"].items():
+            lines.append(f"| {k} | {v:.3f} | {100 * v / tot:.0f} % |")
+    lines.append("")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fastenerf.train import Trainer, resolve_device
+
+    if args.steps < 1 or args.warmup < 0:
+        raise InputError("--steps must be >= 1 and --warmup >= 0")
+    device = resolve_device(args.device)
+    scene = load_scene_dir(args.scene)
+    cfg = make_config(args.backend, args.preset, 300.0, str(device))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    trainer = Trainer(scene, cfg, out / "run")
+    from tqdm import tqdm
+
+    for _ in tqdm(range(args.warmup), desc="warm-up", disable=args.quiet):
+        trainer.step()
+    sync(device)
+    res = profile_steps(trainer, args.steps)
+    hist = trainer.history[-args.steps :]
+    spr = [h["samples_per_ray"] for h in hist if "samples_per_ray" in h]
+    n_rays = trainer.cfg.rays_per_step
+    res.update(
+        scene=Path(args.scene).resolve().name,
+        backend=args.backend,
+        preset=args.preset,
+        warmup=args.warmup,
+        rays_per_step=n_rays,
+        samples_per_step=(2 * n_rays * sum(spr) / len(spr)) if spr else None,
+        session=session_info(device, args.commit),
+    )
+    write_json(out / "profile_step.json", jsonable(res))
+    with atomic_path(out / "profile_step.md") as tmp:
+        tmp.write_text(markdown(res))
+    print(markdown(res))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.profile_step", description=__doc__.split("\n\n")[0]
+    )
+    p.add_argument("--scene", required=True, help="scene folder")
+    p.add_argument("--backend", default="ngp", choices=["ngp", "vanilla"])
+    p.add_argument("--preset", default="fast")
+    p.add_argument("--warmup", type=int, default=200, help="steps before the profile")
+    p.add_argument("--steps", type=int, default=50, help="profiled steps")
+    p.add_argument("--device", default="auto")
+    p.add_argument("--out", default="runs/bench/profile_step")
+    p.add_argument("--commit", default=None, help="git commit to record")
+    p.add_argument("--quiet", action="store_true")
+    args = p.parse_args(argv)
+    try:
+        return run(args)
+    except FastenerfError as e:
+        print(f"profile_step: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
