@@ -268,6 +268,7 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
 
     assert ps.kernel_kind("march_kernel_cuda_kernel_forward") == "march"
     assert ps.kernel_kind("sm90_xmma_gemm_bf16bf16_bf16f32") == "mlp"
+    assert ps.kernel_kind("_kernels__locals__backward_table_4e5_cuda_kernel_forward") == "hash grid"
     assert ps.kernel_kind("void at::native::vectorized_elementwise_kernel") == "torch other"
     out = tmp_path / "prof"
     argv = ["--scene", str(tiny_scene), "--device", "cpu", "--warmup", "1", "--steps", "2"]
