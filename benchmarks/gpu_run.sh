@@ -14,6 +14,9 @@
 #      read from OUT/vanilla_budget_s when present (default 240 s), so a caller can set it
 #      while the script runs
 #   4. the combined error-vs-time outputs, eval sheets of the ngp runs, results.tar.gz
+# On the lent device machine: start it detached (setsid) in one call and keep a call in flight
+# (`sleep 540; cat OUT/progress.log`) until "all done": the machine is handed back 30 s after the
+# last call returns, and the detached run dies with it.
 # TOTAL_S (default 1380) bounds the wall time of steps 1-3; each run gets what is left.
 # DEVICE, NGP_S, VIEW_SIZE, VIEW_FRAMES, PROFILE_WARMUP (environment) shrink it for a CPU try.
 set -u

@@ -567,3 +567,18 @@ def test_bench_viewer_render_only_and_through_gl(tmp_path):
     _egl_or_skip().release()
     res = bench_viewer(f, size=(40, 30), frames=2, warmup=1)
     assert res["full_fps"] > 0 and res["upload_exact"], res
+
+
+def test_interop_texture_takes_the_host_path_for_cpu_frames():
+    from fastenerf.viewer.blit import InteropTexture, Offscreen
+
+    ctx = _egl_or_skip()
+    img = torch.randint(0, 256, (30, 40, 3), dtype=torch.uint8)
+    tex, off = InteropTexture(ctx, filter="nearest"), Offscreen(ctx, (40, 30))
+    tex.upload(img)
+    off.draw(tex)
+    ctx.finish()
+    assert np.array_equal(off.read(), img.numpy()) and tex.interop is None
+    tex.release()
+    off.release()
+    ctx.release()

@@ -107,12 +107,13 @@ class Viewer:
     def _post_init(self) -> None:
         import moderngl
 
-        from .blit import FrameTexture
+        from .blit import InteropTexture
 
         # moderngl attaches to the window's current GL context: the texture it fills is the
-        # one imgui's renderer draws.
+        # one imgui's renderer draws. CUDA frames go to it device to device where the driver
+        # allows, else through the pinned buffer (InteropTexture decides on the first frame).
         self.ctx = moderngl.create_context()
-        self.tex = FrameTexture(self.ctx)
+        self.tex = InteropTexture(self.ctx)
         self.worker = RenderWorker(self.src)
 
     def _before_exit(self) -> None:

@@ -34,7 +34,9 @@ class ViewSettings:
     background: tuple[float, float, float] | None = None
     depth_lo: float | None = None  # depth colouring range, world units; None: automatic
     depth_hi: float | None = None
-    chunk: int = 1 << 16
+    # rays per render call: on an H100 at 800x600 (trained ngp scene) 2^16 gave 35 fps, 2^18
+    # 72 fps, 2^20 76 fps (render only; benchmarks/RESULTS.md): per-call overhead dominates
+    chunk: int = 1 << 18
 
 
 def render_raw(
