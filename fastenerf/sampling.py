@@ -205,7 +205,9 @@ class RaySampler:
             return None
         return kernel
 
-    def _kernel_query(self, kernel, arrays, pix, t0, t1) -> torch.Tensor:
+    def _kernel_query(self, kernel, arrays, pix, t0, t1, any_wraps=None) -> torch.Tensor:
+        """any_wraps: whether some window wraps, when the caller knows it on the host (saves
+        reading it back from the device: a sync every step)."""
         idx = self.index
         wraps = (t0 < idx.t_start) & idx.loop
         t0a = torch.where(wraps, torch.full_like(t0, idx.t_start - 1), t0)
@@ -220,7 +222,7 @@ class RaySampler:
             idx.neg_threshold,
             idx.polarity_offset,
         )
-        if bool(wraps.any()):
+        if any_wraps if any_wraps is not None else bool(wraps.any()):
             t0b = torch.where(wraps, t0 + idx.period, torch.full_like(t0, idx.t_end))
             e = e + kernel(
                 arrays["offsets"],
@@ -244,6 +246,7 @@ class RaySampler:
                 pix,
                 torch.as_tensor(t0, device=self.device),
                 torch.as_tensor(t1, device=self.device),
+                any_wraps=bool(self.index.loop and np.any(np.asarray(t0) < self.index.t_start)),
             )
         e = self.index.query(pix.cpu().numpy(), t0, t1)
         return torch.from_numpy(e).to(self.device)

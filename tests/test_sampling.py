@@ -155,6 +155,17 @@ def test_warp_targets_match_numpy(random_stream, scene_config):
         a, b = rs_np.sample(), rs_wp.sample()
         assert torch.equal(a.pix, b.pix)
         assert torch.allclose(a.target, b.target, atol=1e-5)
+    # windows that wrap past the loop's start (the host decides there is a second part) and
+    # ones that do not, in one batch and alone
+    idx = rs_wp.index
+    assert idx.loop
+    pix = torch.arange(0, 16 * 12, 7)
+    n = len(pix)
+    t1 = np.linspace(10_000, 90_000, n).astype(np.int64)
+    for t0 in (t1 - 30_000, t1 - 5_000):  # some before t_start / none
+        want = idx.query(pix.numpy(), t0, t1)
+        got = rs_wp.targets(pix, t0, t1).numpy()
+        assert np.allclose(got, want, atol=1e-5), (t0 < idx.t_start).any()
 
 
 def test_sampler_state_round_trip(random_stream, scene_config):
