@@ -835,7 +835,7 @@ def make_config(
     opts = {**train.pop("backend_options", {}), **(backend_options or {})}
     train.update(minutes=budget_s / 60.0, device=device, eval_every_s=0.0, checkpoint_every_s=0.0)
     cfg = train_preset(preset, backend, **train)
-    cfg.backend_options = opts
+    cfg.backend_options = {**cfg.backend_options, **opts}  # keep the preset's budget-made choices
     return cfg
 
 

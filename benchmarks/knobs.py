@@ -49,6 +49,8 @@ from fastenerf.io import atomic_path, write_json
 # name -> {"ngp": NGPOptions overrides, "train": TrainConfig overrides}; "default" has none.
 VARIANTS: list[dict[str, Any]] = [
     {"name": "default"},
+    # the default cone follows the budget (config.ngp_cone_for_budget): try both settings
+    {"name": "cone_0", "ngp": {"cone_angle": 0.0}},
     {"name": "cone_1/256", "ngp": {"cone_angle": 1 / 256}},
     {"name": "dt_min_x2", "ngp": {"dt_min_scale": 2.0}},
     {"name": "dt_min_x4", "ngp": {"dt_min_scale": 4.0}},

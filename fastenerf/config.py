@@ -433,6 +433,25 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
+# ngp's marching cone angle follows the training budget unless backend_options set it. Measured
+# on `blocks` (H100, benchmarks/RESULTS.md): 1/256 is ahead from 8 to 40 s, level at 60 s and
+# renders 4x faster, but levels off near 29 dB where constant steps (0) reach 32.6 dB in 5 min.
+SHORT_RUN_MINUTES = 1.0
+SHORT_RUN_STEPS = 5000  # ~60 s of ngp steps on an H100 (~14 ms each)
+SHORT_RUN_CONE = 1.0 / 256
+
+
+def ngp_cone_for_budget(minutes: float | None, steps: int | None) -> float:
+    """1/256 for short or open-ended runs (≤ 1 min, ≤ 5000 steps, or no budget), else 0."""
+    if minutes is not None:
+        short = minutes <= SHORT_RUN_MINUTES
+    elif steps is not None:
+        short = steps <= SHORT_RUN_STEPS
+    else:
+        short = True
+    return SHORT_RUN_CONE if short else 0.0
+
+
 def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConfig:
     """The TrainConfig of preset `name` ("eventnerf" | "fast") for `backend`, with overrides.
 
@@ -456,4 +475,10 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
         cfg.lr_final = cfg.lr * ratio
     if overrides.get("minutes") is not None and overrides.get("steps") is None:
         cfg.steps = None  # a time budget replaces the preset's step count
+    if backend == "ngp" and "cone_angle" not in (cfg.backend_options or {}):
+        # written into the run's config, so a resume with another budget keeps the same marching
+        cfg.backend_options = {
+            **(cfg.backend_options or {}),
+            "cone_angle": ngp_cone_for_budget(cfg.minutes, cfg.steps),
+        }
     return cfg.validate()

@@ -42,10 +42,10 @@ class NGPOptions:
     hidden: int = 64
     geo_features: int = 15
     grid_resolution: int = 128
-    # 1/256: chosen from the knob study (benchmarks/RESULTS.md): on the Pareto front, +4.7 dB
-    # at a 25 s budget and 0.6x the time per step of constant steps (0) on the H100, level at
-    # 60 s and 4x the viewer's frame rate; but it caps near 29 dB on `blocks` where 0 reaches
-    # 32.6 dB in 300 s: long runs should set 0.
+    # 1/256 here (fields built without a training budget); `train_preset` picks it by budget
+    # (`config.ngp_cone_for_budget`): 1/256 is on the knob study's Pareto front at 25 s (+4.7 dB,
+    # 0.6x the time per step of 0), level at 60 s, but caps near 29 dB on `blocks` where constant
+    # steps (0) reach 32.6 dB in 5 min (benchmarks/RESULTS.md).
     cone_angle: float = 1.0 / 256
     dt_min: float | None = None  # None: √3/1024 · box size (DESIGN §4)
     max_samples: int = 1024
