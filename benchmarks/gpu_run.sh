@@ -13,7 +13,8 @@
 #   3. error vs time: vanilla on blocks, ngp on plant, vanilla on plant; vanilla's budget is
 #      read from OUT/vanilla_budget_s when present (default 240 s), so a caller can set it
 #      while the script runs
-#   4. the combined error-vs-time outputs, eval sheets of the ngp runs, results.tar.gz
+#   4. if time is left, ngp on blocks with a 60 s budget (OUT/evt60)
+#   5. the combined error-vs-time outputs, eval sheets of the ngp runs, results.tar.gz
 # On the lent device machine: start it detached (setsid) in one call and keep a call in flight
 # (`sleep 540; cat OUT/progress.log`) until "all done": the machine is handed back 30 s after the
 # last call returns, and the detached run dies with it.
@@ -73,6 +74,14 @@ $PY "${EVT[@]}" --scenes "$DATA/plant" "${VAN[@]}" --budget-s "vanilla=$(vbudget
     --max-wall-s "$(( $(left) > 30 ? $(left) : 30 ))" > "$OUT/evt_plant_vanilla.log" 2>&1
 log "vanilla plant done (rc $?)"
 
+# If time is left: ngp on blocks with a 60 s budget (the budget rule then marches with cone
+# 1/256), the fair ngp point for the time-to-PSNR ratio against vanilla's best above.
+if [ "$(left)" -gt 100 ]; then
+    $PY "${EVT[@]}" --out "$OUT/evt60" --scenes "$DATA/blocks" --backends ngp --preset fast \
+        --budget-s ngp=60 --max-wall-s "$(left)" > "$OUT/evt_blocks_ngp60.log" 2>&1
+    log "ngp blocks 60 s done (rc $?)"
+fi
+
 # Collect: every run of OUT/evt (finished or cut) into one json/png/md; no training happens
 # (finished runs return at once; cut ones get a zero wall budget).
 $PY "${EVT[@]}" --scenes "$DATA/blocks" "$DATA/plant" --backends ngp vanilla \
@@ -86,5 +95,6 @@ for s in blocks plant; do
 done
 (cd "$OUT" && tar czf results.tar.gz --exclude='evt/runs/*/checkpoint*' --exclude='*.pt' \
     progress.log ./*.log ./*.json ./*.png profile evt/error_vs_time.* evt/runs/*/curve.json \
+    evt60/error_vs_time.json \
     eval_*/sheet.png evt/runs/*/metrics.json 2>/dev/null)
 log "all done"
