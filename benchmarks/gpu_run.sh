@@ -28,9 +28,12 @@ PY=${PY:-python3}
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 cd "$ROOT"
 export PYTHONPATH=$ROOT:${PYTHONPATH:-} PYTHONUNBUFFERED=1
-# an uninstalled checkout: the package's kernels/ and viewer/ are mapped by setup.py
-[ -e fastenerf/kernels ] || ln -s ../kernels fastenerf/kernels
-[ -e fastenerf/viewer ] || ln -s ../viewer fastenerf/viewer
+# setup.py maps kernels/ and viewer/ into the package; an uninstalled copy (the device machine)
+# gets links instead — never a checkout that imports them already (the links are git-ignored)
+if ! $PY -c "import fastenerf.kernels, fastenerf.viewer" 2>/dev/null; then
+    [ -e fastenerf/kernels ] || ln -s ../kernels fastenerf/kernels
+    [ -e fastenerf/viewer ] || ln -s ../viewer fastenerf/viewer
+fi
 mkdir -p "$OUT"
 T0=$(date +%s)
 left() { echo $((TOTAL - ($(date +%s) - T0))); }
