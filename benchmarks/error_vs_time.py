@@ -50,7 +50,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from fastenerf.errors import FastenerfError, InputError
+from benchmarks.cli import benchmark_main
+from fastenerf.errors import InputError
 from fastenerf.io import atomic_path, write_json
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -1018,15 +1019,8 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None, prog: str = "python -m benchmarks.error_vs_time") -> int:
-    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
-    add_arguments(p)
-    args = p.parse_args(argv)
-    try:
-        return run(args)
-    except FastenerfError as e:
-        print(f"error_vs_time: error: {e}", file=sys.stderr)
-        return 2
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    return benchmark_main("error_vs_time", __doc__, add_arguments, run, argv, prog)
 
 
 if __name__ == "__main__":

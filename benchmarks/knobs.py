@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from benchmarks.cli import benchmark_main
 from benchmarks.error_vs_time import (
     StopFlag,
     collect,
@@ -43,7 +44,7 @@ from benchmarks.error_vs_time import (
     session_info,
     train_curve,
 )
-from fastenerf.errors import FastenerfError, InputError
+from fastenerf.errors import InputError
 from fastenerf.io import atomic_path, write_json
 
 # name -> {"ngp": NGPOptions overrides, "train": TrainConfig overrides}; "default" has none.
@@ -393,15 +394,8 @@ def summarize(curves: list[dict], variants: dict[str, dict], args, scene, n_vari
     }
 
 
-def main(argv: list[str] | None = None, prog: str = "python -m benchmarks.knobs") -> int:
-    p = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n\n")[0])
-    add_arguments(p)
-    args = p.parse_args(argv)
-    try:
-        return run(args)
-    except FastenerfError as e:
-        print(f"knobs: error: {e}", file=sys.stderr)
-        return 2
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    return benchmark_main("knobs", __doc__, add_arguments, run, argv, prog)
 
 
 if __name__ == "__main__":

@@ -28,8 +28,9 @@ from typing import Any
 
 import torch
 
+from benchmarks.cli import benchmark_main
 from benchmarks.error_vs_time import jsonable, load_scene_dir, make_config, session_info, sync
-from fastenerf.errors import FastenerfError, InputError
+from fastenerf.errors import InputError
 from fastenerf.io import atomic_path, write_json
 
 STAGES = (
@@ -209,10 +210,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(
-        prog="python -m benchmarks.profile_step", description=__doc__.split("\n\n")[0]
-    )
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", required=True, help="scene folder")
     p.add_argument("--backend", default="ngp", choices=["ngp", "vanilla"])
     p.add_argument("--preset", default="fast")
@@ -222,12 +220,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="runs/bench/profile_step")
     p.add_argument("--commit", default=None, help="git commit to record")
     p.add_argument("--quiet", action="store_true")
-    args = p.parse_args(argv)
-    try:
-        return run(args)
-    except FastenerfError as e:
-        print(f"profile_step: error: {e}", file=sys.stderr)
-        return 2
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    return benchmark_main("profile_step", __doc__, add_arguments, run, argv, prog)
 
 
 if __name__ == "__main__":

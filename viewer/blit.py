@@ -36,6 +36,13 @@ def headless_context():
     return moderngl.create_standalone_context(backend="egl", require=330)
 
 
+def check_frame(img: torch.Tensor) -> tuple[int, int, int]:
+    """(H, W, C) of a displayable frame: (H, W, 3|4) uint8, else ValueError."""
+    if img.dtype != torch.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4):
+        raise ValueError(f"frame must be (H, W, 3|4) uint8, got {tuple(img.shape)} {img.dtype}")
+    return tuple(img.shape)
+
+
 class FrameTexture:
     """A GL texture holding the latest frame, re-created when the frame's size changes.
 
@@ -68,9 +75,7 @@ class FrameTexture:
 
     def upload(self, img: torch.Tensor) -> None:
         """Write `img` (H, W, C) uint8 into the texture."""
-        if img.dtype != torch.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4):
-            raise ValueError(f"frame must be (H, W, 3|4) uint8, got {tuple(img.shape)} {img.dtype}")
-        h, w, c = img.shape
+        h, w, c = check_frame(img)
         if self.texture is None or self.texture.size != (w, h) or self.texture.components != c:
             if self.texture is not None:
                 self.texture.release()
@@ -151,6 +156,7 @@ class InteropTexture(FrameTexture):
         self.interop: bool | None = None  # None until the first CUDA frame tried it
 
     def upload(self, img: torch.Tensor) -> None:
+        check_frame(img)  # a bad frame is the caller's error, not a reason to leave interop
         if img.device.type != "cuda" or self.interop is False:
             return super().upload(img)
         try:
@@ -170,9 +176,7 @@ class InteropTexture(FrameTexture):
         from fastenerf.kernels.common import device_of, init, stream_of
 
         init()
-        if img.dtype != torch.uint8 or img.ndim != 3 or img.shape[2] not in (3, 4):
-            raise ValueError(f"frame must be (H, W, 3|4) uint8, got {tuple(img.shape)} {img.dtype}")
-        h, w, c = img.shape
+        h, w, c = img.shape  # checked by upload()
         if self.texture is None or self.texture.size != (w, h) or self.texture.components != c:
             if self.texture is not None:
                 self.texture.release()
