@@ -19,10 +19,11 @@
 # (`sleep 540; cat OUT/progress.log`) until "all done": the machine is handed back 30 s after the
 # last call returns, and the detached run dies with it.
 # TOTAL_S (default 1380) bounds the wall time of steps 1-3; each run gets what is left.
-# DEVICE, NGP_S, VIEW_SIZE, VIEW_FRAMES, PROFILE_WARMUP (environment) shrink it for a CPU try.
+# DEVICE, NGP_S, VIEW_SIZE, VIEW_FRAMES, PROFILE_WARMUP (environment) shrink it for a CPU try;
+# VIEWER=0 leaves out the viewer's measurements (step 2's second half).
 set -u
 DEVICE=${DEVICE:-cuda}; NGP_S=${NGP_S:-300}; VIEW_SIZE=${VIEW_SIZE:-800x600}
-VIEW_FRAMES=${VIEW_FRAMES:-100}; PROFILE_WARMUP=${PROFILE_WARMUP:-300}
+VIEW_FRAMES=${VIEW_FRAMES:-100}; PROFILE_WARMUP=${PROFILE_WARMUP:-300}; VIEWER=${VIEWER:-1}
 DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); COMMIT=${3:-unknown}; TOTAL=${4:-1380}
 PY=${PY:-python3}
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -54,16 +55,18 @@ $PY "${EVT[@]}" --scenes "$DATA/blocks" "${NGP[@]}" \
 log "ngp blocks done (rc $?)"
 
 RUN="$OUT/evt/runs/blocks-ngp"
-$PY -m fastenerf.viewer.bench "$RUN" --size "$VIEW_SIZE" --frames "$VIEW_FRAMES" --no-gl \
-    --chunk 65536 262144 1048576 --out "$OUT/viewer_render.json" > "$OUT/viewer.log" 2>&1
-log "viewer render-only done (rc $?)"
-if $PY -c "import moderngl" 2>/dev/null; then
-    $PY -m fastenerf.viewer.bench "$RUN" --size "$VIEW_SIZE" --frames "$VIEW_FRAMES" \
-        --out "$OUT/viewer_gl.json" >> "$OUT/viewer.log" 2>&1
-    log "viewer GL done (rc $?)"
-    fnerf view "$RUN" --snapshot "$OUT/viewer_snapshot.png" --size "$VIEW_SIZE" --view-index 0 \
-        >> "$OUT/viewer.log" 2>&1
-    log "snapshot done (rc $?)"
+if [ "$VIEWER" = 1 ]; then
+    $PY -m fastenerf.viewer.bench "$RUN" --size "$VIEW_SIZE" --frames "$VIEW_FRAMES" --no-gl \
+        --chunk 65536 262144 1048576 --out "$OUT/viewer_render.json" > "$OUT/viewer.log" 2>&1
+    log "viewer render-only done (rc $?)"
+    if $PY -c "import moderngl" 2>/dev/null; then
+        $PY -m fastenerf.viewer.bench "$RUN" --size "$VIEW_SIZE" --frames "$VIEW_FRAMES" \
+            --out "$OUT/viewer_gl.json" >> "$OUT/viewer.log" 2>&1
+        log "viewer GL done (rc $?)"
+        fnerf view "$RUN" --snapshot "$OUT/viewer_snapshot.png" --size "$VIEW_SIZE" \
+            --view-index 0 >> "$OUT/viewer.log" 2>&1
+        log "snapshot done (rc $?)"
+    fi
 fi
 
 vbudget() { cat "$OUT/vanilla_budget_s" 2>/dev/null || echo 240; }

@@ -14,6 +14,9 @@ background stable). A window without events falls back to uniform pixels. Rays a
 the training device from a per-pixel direction table and the grid's camera-to-world table,
 both computed once. Targets E come from the Warp kernel `fastenerf.kernels.events.window_sum`
 when it imports and agrees with the numpy `EventIndex.query`, otherwise from the latter.
+Batches are drawn `prefetch` steps at a time: building one costs a few dozen small host-side
+ops whatever its size, which on a GPU cost more than the whole step's device work (see
+benchmarks/RESULTS.md, the step profile), so a block of k batches costs about what one did.
 """
 
 from __future__ import annotations
@@ -142,8 +145,14 @@ class RaySampler:
         device: str | torch.device = "cpu",
         seed: int = 0,
         use_kernel: bool | None = None,
+        prefetch: int = 1,
     ):
+        if prefetch < 1:
+            raise InputError(f"sampler prefetch must be >= 1 (got {prefetch})")
         self.index, self.rig, self.windows = index, rig, windows
+        self.prefetch = int(prefetch)
+        self._block: list[RayBatch] = []  # drawn batches not handed out yet
+        self._block_state: dict | None = None  # RNG states the current block was drawn from
         self.device = torch.device(device)
         self.n_windows = int(windows_per_step)
         self.per_window = max(1, int(rays_per_step) // self.n_windows)
@@ -271,10 +280,17 @@ class RaySampler:
         return torch.where(total[:, None] > 0, pix, torch.full_like(pix, -1))
 
     def sample(self) -> RayBatch:
-        """Draw windows, pixels, rays and targets for one step."""
-        j0, j1 = self.windows.sample(self.n_windows)
+        """One step's windows, pixels, rays and targets (from the current prefetched block)."""
+        if not self._block:
+            self._block_state = self._rng_state()
+            self._block = self._draw_block(self.prefetch)
+        return self._block.pop(0)
+
+    def _draw_block(self, k: int) -> list[RayBatch]:
+        """k steps' batches drawn together: every op below runs once for all k·W windows."""
+        w, n = self.n_windows * k, self.per_window
+        j0, j1 = self.windows.sample(w)
         t0, t1 = self.windows.grid_times(j0), self.windows.grid_times(j1)
-        w, n = self.n_windows, self.per_window
         n_pos = n - self.n_neg
         uniform = torch.randint(0, self.n_pix, (w, n), generator=self.gen, device=self.device)
         if n_pos > 0:
@@ -296,13 +312,40 @@ class RaySampler:
         win_np = np.repeat(np.arange(w), n)
         target = self.targets(pix, t0[win_np], t1[win_np])
         channel = None if self.mono else self.rig.channel(pix)
-        return RayBatch(
-            torch.cat([o0, o1]), torch.cat([d0, d1]), pix, channel, target, positive.reshape(-1), w
-        )
+        # step i's rays are its B pixels at t0, then the same pixels at t1: (k, 2, B, 3)
+        b = self.n_windows * n
+        rays_o = torch.stack([o0.reshape(k, b, 3), o1.reshape(k, b, 3)], 1)
+        rays_d = torch.stack([d0.reshape(k, b, 3), d1.reshape(k, b, 3)], 1)
+        pix, target, positive = pix.reshape(k, b), target.reshape(k, b), positive.reshape(k, b)
+        channel = None if channel is None else channel.reshape(k, b)
+        return [
+            RayBatch(
+                rays_o[i].reshape(2 * b, 3),
+                rays_d[i].reshape(2 * b, 3),
+                pix[i],
+                None if channel is None else channel[i],
+                target[i],
+                positive[i],
+                self.n_windows,
+            )
+            for i in range(k)
+        ]
+
+    def _rng_state(self) -> dict:
+        return {"windows": self.windows.state_dict(), "gen": self.gen.get_state()}
 
     def state_dict(self) -> dict:
-        return {"windows": self.windows.state_dict(), "gen": self.gen.get_state()}
+        """The RNG states the current block was drawn from and how many of it were used, so a
+        resume redraws the same block and goes on where it stopped."""
+        if not self._block:
+            return {**self._rng_state(), "position": 0}
+        return {**self._block_state, "position": self.prefetch - len(self._block)}
 
     def load_state_dict(self, state: dict) -> None:
         self.windows.load_state_dict(state["windows"])
         self.gen.set_state(state["gen"].cpu() if hasattr(state["gen"], "cpu") else state["gen"])
+        self._block = []
+        position = int(state.get("position", 0))
+        if position > 0:
+            self._block_state = self._rng_state()
+            self._block = self._draw_block(self.prefetch)[position:]

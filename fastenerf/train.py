@@ -43,6 +43,8 @@ from .sampling import RaySampler, WindowSampler
 CHECKPOINT = "checkpoint.pt"
 CHECKPOINT_VERSION = 1
 HISTORY_MAX = 100_000
+# Batches the sampler draws at once: its host cost per block is about that of one batch.
+SAMPLER_PREFETCH = 16
 # Options that may change between a run and its resume: budget and bookkeeping only.
 RESUMABLE_KEYS = {
     "steps",
@@ -153,6 +155,7 @@ class Trainer:
             neg_ratio=self.cfg.neg_ratio,
             device=self.device,
             seed=seed,
+            prefetch=SAMPLER_PREFETCH,
         )
         bg = scene_background(sc)
         self.background = None if bg is None else torch.tensor(bg, device=self.device)
@@ -555,6 +558,7 @@ class Trainer:
                         "lengths": _maybe_numpy(ck["sampler"]["windows"]["lengths"]),
                     },
                     "gen": ck["sampler"]["gen"],
+                    "position": int(ck["sampler"].get("position", 0)),
                 }
             )
             rng = ck["rng"]

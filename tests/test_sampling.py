@@ -179,3 +179,29 @@ def test_sampler_state_round_trip(random_stream, scene_config):
     rs.load_state_dict(state)
     b = rs.sample()
     assert torch.equal(a.pix, b.pix) and torch.equal(a.rays_d, b.rays_d)
+
+
+def test_prefetched_blocks_hand_out_whole_batches_and_resume_mid_block(random_stream, scene_config):
+    cfg = scene_config(16, 12, t_end_us=100_000, n_views=50)
+    stream = random_stream(3000, 16, 12, t_max=99_999)
+    rs, idx, *_ = make_sampler(stream, cfg, use_kernel=False, prefetch=4)
+    batches = [rs.sample() for _ in range(3)]
+    state = rs.state_dict()
+    assert state["position"] == 3
+    rest = [rs.sample() for _ in range(3)]  # the block's last batch, then a new block
+    for b in batches + rest:
+        assert b.rays_o.shape == (800, 3) and b.rays_o.is_contiguous()
+        assert b.pix.shape == b.target.shape == b.positive.shape == (400,)
+        assert b.channel is not None and b.channel.shape == (400,)
+        assert b.n_windows == 4
+    for b in batches:  # per window, its pixels' rays leave one camera centre at t0 and at t1
+        o = b.rays_o.reshape(2, 4, 100, 3)
+        assert torch.allclose(o, o[:, :, :1].expand_as(o))
+    assert not torch.equal(batches[0].pix, batches[1].pix)
+    rs.load_state_dict(state)
+    again = [rs.sample() for _ in range(3)]
+    for a, b in zip(rest, again, strict=True):
+        assert torch.equal(a.pix, b.pix) and torch.equal(a.rays_d, b.rays_d)
+        assert torch.equal(a.target, b.target)
+    with pytest.raises(InputError, match="prefetch"):
+        make_sampler(stream, cfg, use_kernel=False, prefetch=0)
