@@ -53,6 +53,8 @@ VARIANTS: list[dict[str, Any]] = [
     # the default cone follows the budget (config.ngp_cone_for_budget): try both settings
     {"name": "cone_0", "ngp": {"cone_angle": 0.0}},
     {"name": "cone_1/256", "ngp": {"cone_angle": 1 / 256}},
+    # the default starts as fog of optical depth 9 across the box (ngp.INIT_OPTICAL_DEPTH)
+    {"name": "density_bias_0", "ngp": {"density_bias": 0.0}},
     {"name": "dt_min_x2", "ngp": {"dt_min_scale": 2.0}},
     {"name": "dt_min_x4", "ngp": {"dt_min_scale": 4.0}},
     {"name": "occ_thresh_0.005", "ngp": {"density_threshold": 0.005}},

@@ -450,3 +450,22 @@ def test_ngp_grid_follows_module_device_and_survives_dtype_casts(make):
     out = f.render(o, d, near=1e-4, background=BG, train=False)
     for k in ("rgb", "depth", "opacity"):
         assert torch.equal(out[k], ref[k]), k
+
+
+def test_new_ngp_field_is_a_fog_of_fixed_optical_depth_at_any_scale():
+    # A new field starts as fog of optical depth INIT_OPTICAL_DEPTH across the box whatever
+    # its size (transparent starts stall the event loss: RESULTS.md); old runs keep bias 0.
+    for scale in (0.1, 1.0, 20.0):
+        aabb = [-scale, -scale, -scale, scale, scale, scale]
+        f = ngp_mod.NGPField(aabb, device="cpu")
+        x = (torch.rand(256, 3) * 2 - 1) * scale
+        with torch.no_grad():
+            depth = f.density(x) * (2 * scale)
+        assert torch.allclose(depth, torch.full_like(depth, ngp_mod.INIT_OPTICAL_DEPTH), rtol=0.05)
+        conf = f.config_dict()
+        assert conf["options"]["density_bias"] == pytest.approx(math.log(4.5 / scale))
+        assert ngp_mod.from_config(conf, device="cpu").options == f.options
+    conf["options"].pop("density_bias")
+    assert ngp_mod.from_config(conf, device="cpu").options.density_bias == 0.0
+    fixed = ngp_mod.NGPField(aabb, ngp_mod.NGPOptions(density_bias=-1.0), device="cpu")
+    assert fixed.options.density_bias == -1.0
