@@ -546,9 +546,15 @@ def summarize_scene(runs: dict[str, dict]) -> dict[str, Any]:
     ngp, van = runs.get("ngp"), runs.get("vanilla")
     if ngp and van and ngp["points"] and van["points"]:
         vb = best_point(van["points"])
-        hit = time_to_reach(ngp["points"], vb["psnr"]) if vb else None
+        first = min(van["points"], key=lambda p: p["train_s"])
+        # A vanilla run whose best is its first evaluation never learned within its budget:
+        # that PSNR is what a near-empty field scores (high on a scene that is mostly known
+        # background), and "time to reach it" measures nothing.
+        learned = vb is not None and (len(van["points"]) == 1 or vb is not first)
+        hit = time_to_reach(ngp["points"], vb["psnr"]) if learned else None
         t_v = vb and vb["train_s"]
         out["ngp_vs_vanilla"] = {
+            "vanilla_learned": learned,
             "vanilla_best_psnr": vb and vb["psnr"],
             "vanilla_time_to_best_s": t_v,
             # the first ngp point at or above: an upper bound on the time, so `speedup` is a
@@ -561,6 +567,9 @@ def summarize_scene(runs: dict[str, dict]) -> dict[str, Any]:
             "speedup_interp": (t_v / hit["interp"]) if hit and hit["interp"] else None,
             "reached": hit is not None,
         }
+        if not learned:
+            for k in ("speedup", "speedup_upper", "speedup_interp"):
+                out["ngp_vs_vanilla"][k] = None
     if ngp and ngp["points"]:
         pts = sorted(ngp["points"], key=lambda p: p["train_s"])
         at60 = next((p for p in pts if p["train_s"] >= 60.0), None)
@@ -651,6 +660,11 @@ def markdown(result: dict) -> str:
         g = s.get("ngp_60s")
         if c is None:
             cmp = "| — | — | — | — (needs both backends) "
+        elif not c.get("vanilla_learned", True):
+            cmp = (
+                f"| {_f(c['vanilla_best_psnr'])} | {_f(c['vanilla_time_to_best_s'], '.1f')} "
+                "| — | none: vanilla never rose above its first evaluation "
+            )
         elif not c["reached"]:
             ngp_b = s["backends"]["ngp"]
             cmp = (
@@ -680,7 +694,9 @@ def markdown(result: dict) -> str:
     lines += [
         "",
         "The vanilla backend's best is its best within its budget, not its converged "
-        "value (the reference trains for days); ngp's last point stands in for its "
+        "value (the reference trains for days); where that best is its first evaluation "
+        "(an untrained field's score) there is no speed-up to report. ngp's last point stands "
+        "in for its "
         "converged PSNR. Each run's learning rate decays over its own budget, so ngp's 60 s "
         "point of a longer run is taken mid-schedule (a run with `--budget-s ngp=60` measures "
         "a 60 s schedule).",

@@ -91,7 +91,7 @@ fi
 # Collect: every run of OUT/evt (finished or cut) into one json/png/md; no training happens
 # (finished runs return at once; cut ones get a zero wall budget).
 $PY "${EVT[@]}" --scenes "$DATA/blocks" "$DATA/plant" --backends ngp vanilla \
-    --preset ngp=fast vanilla=eventnerf --budget-s "ngp=$NGP_S" "vanilla=$(vbudget)" --resume --max-wall-s 0 --warmup-steps 0 \
+    --preset ngp=fast vanilla=eventnerf --budget-s "ngp=$NGP_S" "vanilla=$(vbudget)" --resume --max-wall-s 0 \
     > "$OUT/evt_collect.log" 2>&1
 log "collected (rc $?)"
 for s in blocks plant; do

@@ -116,6 +116,15 @@ def test_summary_speedup_time_to_psnr_and_60s_gap():
     s2 = evt.summarize_scene({"ngp": slow, "vanilla": van})
     assert not s2["ngp_vs_vanilla"]["reached"] and s2["ngp_vs_vanilla"]["speedup"] is None
     assert not s2["ngp_60s"]["met"]
+    # a vanilla run that never beat its first evaluation (an untrained field's score) gives
+    # no speed-up, however fast ngp passes that level
+    flat = _curve("vanilla", [(1.0, 25.7), (60.0, 25.4), (200.0, 25.4)])
+    s3 = evt.summarize_scene({"ngp": ngp, "vanilla": flat})
+    assert not s3["ngp_vs_vanilla"]["vanilla_learned"]
+    assert (
+        s3["ngp_vs_vanilla"]["speedup"] is None and s3["ngp_vs_vanilla"]["speedup_interp"] is None
+    )
+    assert evt.summarize_scene({"ngp": ngp, "vanilla": van})["ngp_vs_vanilla"]["vanilla_learned"]
     md = evt.markdown(
         {
             "machines": ["GPU X"],
@@ -131,12 +140,13 @@ def test_summary_speedup_time_to_psnr_and_60s_gap():
                 "eval_scale": 1.0,
                 "warmup_steps": 2,
             },
-            "summary": {"s": s, "slow": s2},
+            "summary": {"s": s, "slow": s2, "flat": s3},
         }
     )
     assert (
         "≥ 218.1× (met; 236× interpolated)" in md and "not reached" in md and "+0.30 dB (met)" in md
     )
+    assert "none: vanilla never rose above its first evaluation" in md
 
 
 def _read(out):

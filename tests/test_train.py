@@ -163,6 +163,22 @@ def test_resume_takes_the_same_next_steps(scene, tmp_path):
     assert [h["loss"] for h in straight.history][3:] == [h["loss"] for h in resumed.history]
 
 
+def test_checkpoints_mid_block_with_load_time_windows(scene, tmp_path):
+    # The eventnerf preset's load-time window lengths live in the sampler state; saving twice
+    # within one prefetched block once failed (the first save converted the cached state).
+    cfg = tiny_cfg(steps=4, win_redraw="load")
+    straight = Trainer(scene, cfg, tmp_path / "a")
+    straight.run(progress=False)
+    t = Trainer(scene, cfg, tmp_path / "b")
+    t.step()
+    t.save_checkpoint()
+    t.step()
+    t.save_checkpoint()
+    resumed = Trainer(scene, cfg, tmp_path / "b", resume=True)
+    resumed.run(progress=False)
+    assert_same(params(straight), params(resumed))
+
+
 def test_ctrl_c_writes_a_checkpoint_and_resume_continues(scene, tmp_path):
     cfg = tiny_cfg(steps=5)
     straight = Trainer(scene, cfg, tmp_path / "a")
