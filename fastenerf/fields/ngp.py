@@ -75,7 +75,7 @@ class NGPOptions:
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
 # background shows through. On `blocks` (CPU, 116×87, 2048 rays/step, 300 steps): depth ≈ 0.4
-# (bias 0) 17.1 dB, ≈ 3 (bias 1) 17.9 dB, ≈ 9 (bias 2) 21.4 dB, ≈ 24 (bias 3) 21.1 dB with
+# (bias 0) 17.5 dB, ≈ 3 (bias 1) 17.9 dB, ≈ 9 (bias 2) 21.4 dB, ≈ 24 (bias 3) 21.1 dB with
 # twice the samples per ray.
 INIT_OPTICAL_DEPTH = 9.0
 
