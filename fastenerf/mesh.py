@@ -206,12 +206,24 @@ def extract_mesh(
 def field_mesh(
     field, aabb: Sequence[float] | None = None, cylinder: Cylinder | None = None, **kwargs
 ):
-    """`extract_mesh` on a `fastenerf.fields.base.Field` (its density and color, its device)."""
+    """`extract_mesh` on a `fastenerf.fields.base.Field` (its density and color, its device).
+
+    A field with an occupancy grid (ngp) is meshed as it renders: σ = 0 in cells the grid holds
+    empty. Otherwise cells no training camera saw would keep the field's initial fog, which
+    crosses the threshold in a small enough box (ngp starts at σ = 9 / box side).
+    """
     if aabb is None:
         aabb = [float(v) for v in torch.as_tensor(field.aabb).reshape(-1).tolist()]
     device = next((p.device for p in field.parameters()), torch.device("cpu"))
     kwargs.setdefault("device", device)
-    return extract_mesh(field.density, field.color, aabb, cylinder=cylinder, **kwargs)
+    density = field.density
+    grid = getattr(field, "grid", None)
+    if grid is not None and hasattr(grid, "occupied"):
+
+        def density(x: torch.Tensor) -> torch.Tensor:
+            return torch.where(grid.occupied(x).to(x.device), field.density(x), 0.0)
+
+    return extract_mesh(density, field.color, aabb, cylinder=cylinder, **kwargs)
 
 
 def export_mesh(mesh, path: str | Path) -> Path:

@@ -248,3 +248,21 @@ def test_mesh_cli_on_a_run(tmp_path, scene_config, random_stream):
     assert len(v) and np.sqrt(v[:, 0] ** 2 + v[:, 2] ** 2).max() <= 0.25 + h
     assert cli(["mesh", str(tmp_path / "run"), "--out", str(tmp_path / "m.stl")]) == 2
     assert cli(["mesh", str(tmp_path / "nope"), "--out", str(out)]) == 2
+
+
+def test_ngp_mesh_leaves_out_the_fog_its_cameras_never_saw():
+    from fastenerf.fields.ngp import NGPField
+
+    # A new ngp field in a small box is fog above the mesh threshold (σ = 9 / 0.2 = 45) ...
+    box = [-0.1, -0.1, -0.1, 0.1, 0.1, 0.1]
+    field = NGPField(box, device="cpu")
+    x = torch.zeros(4, 3)
+    with torch.no_grad():
+        assert (field.density(x) > 10.0).all()
+    # ... that no training camera saw: one at z = 5 looking further along +z (OpenCV axes)
+    c2w = np.eye(4)
+    c2w[2, 3] = 5.0
+    K = np.array([[50.0, 0, 32], [0, 50.0, 32], [0, 0, 1]])
+    field.observe_cameras(K, c2w[None], 64, 64)
+    with pytest.raises(InputError, match="never reaches the threshold"):
+        field_mesh(field, resolution=16, threshold=10.0, progress=False)
