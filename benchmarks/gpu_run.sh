@@ -16,8 +16,12 @@
 #   4. if time is left, ngp on blocks with a 60 s budget (OUT/evt60)
 #   5. the combined error-vs-time outputs, eval sheets of the ngp runs, results.tar.gz
 # On the lent device machine: start it detached (setsid) in one call and keep a call in flight
-# (`sleep 540; cat OUT/progress.log`) until "all done": the machine is handed back 30 s after the
-# last call returns, and the detached run dies with it.
+# (`sleep 540; cp OUT/partial.tgz $OUT/; cat OUT/progress.log`) until "all done": the machine is
+# handed back 30 s after the last call returns, and the detached run dies with it. After every
+# stage OUT/partial.tgz holds the logs and curves so far, so each keep-alive call can bring them
+# home (a session whose device time runs out mid-run keeps what was finished).
+# Device time (H100, 2026-11-23): start + staging ~1 min, profile 45 s, ngp 300 s ~6 min,
+# vanilla 200 s ~3.5 min per scene, collect + eval 40 s: ~23 min with VIEWER=0 and TOTAL_S 1230.
 # TOTAL_S (default 1380) bounds the wall time of steps 1-3; each run gets what is left.
 # DEVICE, NGP_S, VIEW_SIZE, VIEW_FRAMES, PROFILE_WARMUP (environment) shrink it for a CPU try;
 # VIEWER=0 leaves out the viewer's measurements (step 2's second half).
@@ -38,7 +42,11 @@ fi
 mkdir -p "$OUT"
 T0=$(date +%s)
 left() { echo $((TOTAL - ($(date +%s) - T0))); }
-log() { echo "[$(date +%T) +$(($(date +%s) - T0))s] $*" | tee -a "$OUT/progress.log"; }
+log() {
+    echo "[$(date +%T) +$(($(date +%s) - T0))s] $*" | tee -a "$OUT/progress.log"
+    (cd "$OUT" && tar czf partial.tgz.tmp ./*.log profile/*.json profile/*.md \
+        evt/runs/*/curve.json 2>/dev/null; mv -f partial.tgz.tmp partial.tgz)
+}
 fnerf() { $PY -c "import sys; from fastenerf.cli import main; sys.exit(main())" "$@"; }
 EVT=(-m benchmarks.error_vs_time --device $DEVICE --eval-views 10 --out "$OUT/evt" --commit "$COMMIT"
      --quiet)
