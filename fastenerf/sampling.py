@@ -21,7 +21,6 @@ benchmarks/RESULTS.md, the step profile), so a block of k batches costs about wh
 
 from __future__ import annotations
 
-import copy
 import warnings
 from dataclasses import dataclass
 
@@ -340,9 +339,7 @@ class RaySampler:
         resume redraws the same block and goes on where it stopped."""
         if not self._block:
             return {**self._rng_state(), "position": 0}
-        # a copy: callers convert the state for saving in place (Trainer.state_dict does)
-        state = copy.deepcopy(self._block_state)
-        return {**state, "position": self.prefetch - len(self._block)}
+        return {**self._block_state, "position": self.prefetch - len(self._block)}
 
     def load_state_dict(self, state: dict) -> None:
         self.windows.load_state_dict(state["windows"])

@@ -481,7 +481,9 @@ class Trainer:
             rng["cuda"] = torch.cuda.get_rng_state_all()
         sampler = self.sampler.state_dict()
         lengths = sampler["windows"]["lengths"]
-        sampler["windows"]["lengths"] = None if lengths is None else torch.from_numpy(lengths)
+        # a new dict: the sampler's own state must not change when a checkpoint is written
+        lengths = None if lengths is None else torch.from_numpy(lengths)
+        sampler = {**sampler, "windows": {**sampler["windows"], "lengths": lengths}}
         return {
             "format": "fastenerf-checkpoint",
             "version": CHECKPOINT_VERSION,
