@@ -26,26 +26,21 @@ import argparse
 import json
 import math
 import re
+import signal
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 from benchmarks.cli import benchmark_main
-from benchmarks.error_vs_time import (
-    StopFlag,
-    collect,
-    finite,
-    jsonable,
-    load_scene_dir,
-    make_config,
-    make_eval_set,
-    parse_sets,
-    session_info,
-    train_curve,
-)
+from benchmarks.curve import make_config, read_curve, train_curve
+from benchmarks.error_vs_time import collect, load_scene_dir, parse_sets
+from benchmarks.session import finite, jsonable, session_info
 from fastenerf.errors import InputError
+from fastenerf.evaluate import make_eval_set
+from fastenerf.hooks import StopOnSignal
 from fastenerf.io import atomic_path, write_json
+from fastenerf.run import resolve_device
 
 # name -> {"ngp": NGPOptions overrides, "train": TrainConfig overrides}; "default" has none.
 VARIANTS: list[dict[str, Any]] = [
@@ -288,8 +283,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fastenerf.train import resolve_device
-
     t_start = time.perf_counter()
     variants = read_variants_file(args.variants_file) if args.variants_file else VARIANTS
     if args.list:
@@ -315,45 +308,42 @@ def run(args: argparse.Namespace) -> int:
     if session["machine"]["cpu_numbers"]:
         print(f"CPU numbers: {session['machine']['name']}")
     by_name = {v["name"]: v for v in variants}
-    stop = StopFlag().install()
+    stop = StopOnSignal((signal.SIGINT, signal.SIGTERM))
     curves: list[dict] = []
     deadline = None if args.max_wall_s is None else t_start + args.max_wall_s
     per_variant_s = None  # wall seconds the last variant took (to decide whether one more fits)
-    try:
-        for v in variants:
-            run_dir = out / "runs" / re.sub(r"[^A-Za-z0-9_.^-]+", "_", v["name"])
-            t0 = time.perf_counter()
-            need = per_variant_s if per_variant_s is not None else 1.2 * args.budget_s + 10.0
-            done = _existing(run_dir) if args.resume else None
-            if done is not None and done.get("finished") and done["budget_s"] == args.budget_s:
-                curve = done
-            elif stop.set or (deadline is not None and t0 + need > deadline):
-                if done is None:
-                    continue
-                curve = done  # unfinished: shown as such, continued by the next --resume
-            else:
-                curve = train_curve(
-                    scene,
-                    cfgs[v["name"]],
-                    run_dir,
-                    ev,
-                    [args.budget_s],
-                    label={
-                        "scene": Path(args.scene).resolve().name,
-                        "backend": "ngp",
-                        "variant": v["name"],
-                    },
-                    session=session,
-                    resume=args.resume,
-                    deadline=deadline,
-                    stop=stop,
-                    warmup_steps=args.warmup_steps,
-                    progress=not args.quiet,
-                )
-                per_variant_s = time.perf_counter() - t0
-            curves.append(curve)
-    finally:
-        stop.restore()
+    for v in variants:
+        run_dir = out / "runs" / re.sub(r"[^A-Za-z0-9_.^-]+", "_", v["name"])
+        t0 = time.perf_counter()
+        need = per_variant_s if per_variant_s is not None else 1.2 * args.budget_s + 10.0
+        done = _existing(run_dir) if args.resume else None
+        if done is not None and done.get("finished") and done["budget_s"] == args.budget_s:
+            curve = done
+        elif stop.received or (deadline is not None and t0 + need > deadline):
+            if done is None:
+                continue
+            curve = done  # unfinished: shown as such, continued by the next --resume
+        else:
+            curve = train_curve(
+                scene,
+                cfgs[v["name"]],
+                run_dir,
+                ev,
+                [args.budget_s],
+                label={
+                    "scene": Path(args.scene).resolve().name,
+                    "backend": "ngp",
+                    "variant": v["name"],
+                },
+                session=session,
+                resume=args.resume,
+                deadline=deadline,
+                stop=stop,
+                warmup_steps=args.warmup_steps,
+                progress=not args.quiet,
+            )
+            per_variant_s = time.perf_counter() - t0
+        curves.append(curve)
     if not curves:
         raise InputError("no variant ran (--max-wall-s too small for one budget?)")
     result = summarize(curves, by_name, args, scene, len(variants))
@@ -367,8 +357,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _existing(run_dir: Path) -> dict | None:
-    from benchmarks.error_vs_time import read_curve
-
     c = read_curve(run_dir / "curve.json")
     return c if c and c.get("points") else None
 

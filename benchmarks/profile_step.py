@@ -1,11 +1,12 @@
-"""Where one training step's time goes: a torch.profiler trace of `Trainer.step()`.
+"""Where one training step's time goes: a torch.profiler trace of the training loop's steps.
 
     python -m benchmarks.profile_step --scene DIR [--backend ngp] [--preset fast] \
         [--warmup 200] [--steps 50] [--device cuda] [--out OUT]
 
-The trainer takes `--warmup` steps first (kernel compilation, occupancy-grid warm-up, the
-allocator's pools), then `--steps` steps run under the profiler. Reported per step:
-- wall: host time of `Trainer.step()` (the synchronised clock of benchmarks.error_vs_time);
+The trainer runs with one hook (`ProfileSteps`): `--warmup` steps first (kernel compilation,
+occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plainly and
+`--steps` more under the profiler. Reported per step:
+- wall: the trainer's step clock, synchronised with the device (as benchmarks.error_vs_time);
 - host stages: inclusive CPU time of the named ranges the trainer and the ngp field open
   (grid_update, sample_rays, render > march / field / composite, loss, backward, optimizer);
 - device (CUDA only): kernel time by kind — every kernel's name sorted into the op that
@@ -22,16 +23,20 @@ from __future__ import annotations
 import argparse
 import re
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from benchmarks.cli import benchmark_main
-from benchmarks.error_vs_time import jsonable, load_scene_dir, make_config, session_info, sync
+from benchmarks.curve import make_config
+from benchmarks.error_vs_time import load_scene_dir
+from benchmarks.session import jsonable, session_info
 from fastenerf.errors import InputError
+from fastenerf.hooks import Hook
 from fastenerf.io import atomic_path, write_json
+from fastenerf.progress import progress_bar
+from fastenerf.run import resolve_device
 
 STAGES = (
     "grid_update",
@@ -81,26 +86,67 @@ def _device_time_us(ev) -> float:
     return 0.0
 
 
-def profile_steps(trainer, steps: int) -> dict[str, Any]:
-    """Run `steps` steps of `trainer` under torch.profiler; returns the per-step breakdown."""
-    from torch.profiler import ProfilerActivity, profile
+class ProfileSteps(Hook):
+    """After `warmup` steps, times `steps` steps plainly, then `steps` more under
+    torch.profiler, then stops the run; `result` holds the per-step breakdown."""
 
-    dev = trainer.device
-    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
-    sync(dev)
-    # the same steps without the profiler first: its per-op bookkeeping slows the host
-    t = time.perf_counter()
-    for _ in range(steps):
-        trainer.step()
-    sync(dev)
-    plain_ms = 1e3 * (time.perf_counter() - t) / steps
-    wall = []
-    with profile(activities=acts) as prof:
-        for _ in range(steps):
-            t = time.perf_counter()
-            trainer.step()
-            sync(dev)
-            wall.append(time.perf_counter() - t)
+    def __init__(self, warmup: int, steps: int, progress: bool = True):
+        self.warmup, self.steps = warmup, steps
+        self.phase = "warmup"
+        self.count = 0
+        self.wall: list[float] = []
+        self.prof = None
+        self.result: dict[str, Any] | None = None
+        self.bar = progress_bar(total=warmup + 2 * steps, desc="profile", enabled=progress)
+
+    def on_start(self, trainer) -> None:
+        trainer.sync_clock = True  # step times are the device's: the clock of error_vs_time
+        if self.warmup == 0:
+            self._next(trainer)
+
+    def after_step(self, trainer, stats: dict[str, Any]) -> None:
+        self.bar.update(1)
+        self.count += 1
+        if self.phase == "profiled":
+            self.wall.append(self._dt(trainer))
+        limit = self.warmup if self.phase == "warmup" else self.steps
+        if self.count >= limit:
+            self._next(trainer)
+
+    def _dt(self, trainer) -> float:
+        now = trainer.train_seconds
+        dt, self._last = now - self._last, now
+        return dt
+
+    def _next(self, trainer) -> None:
+        self.count = 0
+        if self.phase == "warmup":
+            # the same steps without the profiler first: its per-op bookkeeping slows the host
+            self.phase, self.t_plain = "plain", trainer.train_seconds
+        elif self.phase == "plain":
+            from torch.profiler import ProfilerActivity, profile
+
+            self.plain_ms = 1e3 * (trainer.train_seconds - self.t_plain) / self.steps
+            dev = trainer.device
+            acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+            self.prof = profile(activities=acts)
+            self.prof.__enter__()
+            self.phase, self._last = "profiled", trainer.train_seconds
+        else:
+            self.prof.__exit__(None, None, None)
+            self.result = breakdown(self.prof, trainer.device, self.wall, self.plain_ms)
+            self.phase = "done"
+            trainer.request_stop()
+
+    def on_end(self, trainer, summary: dict[str, Any]) -> None:
+        self.bar.close()
+        if self.phase == "profiled":
+            self.prof.__exit__(None, None, None)
+
+
+def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> dict[str, Any]:
+    """Per-step host stages, device kernel time by kind and the device's busy share."""
+    steps = len(wall)
     host = dict.fromkeys(STAGES, 0.0)
     kinds: dict[str, float] = {}
     top: dict[str, float] = {}
@@ -175,7 +221,7 @@ def markdown(res: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fastenerf.train import Trainer, resolve_device
+    from fastenerf.train import Trainer
 
     if args.steps < 1 or args.warmup < 0:
         raise InputError("--steps must be >= 1 and --warmup >= 0")
@@ -185,12 +231,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     trainer = Trainer(scene, cfg, out / "run")
-    from tqdm import tqdm
-
-    for _ in tqdm(range(args.warmup), desc="warm-up", disable=args.quiet):
-        trainer.step()
-    sync(device)
-    res = profile_steps(trainer, args.steps)
+    hook = ProfileSteps(args.warmup, args.steps, progress=not args.quiet)
+    trainer.run(hooks=[hook])
+    if hook.result is None:
+        raise InputError(f"the run ended after {trainer.step_count} steps, before the profile")
+    res = hook.result
     hist = trainer.history[-args.steps :]
     spr = [h["samples_per_ray"] for h in hist if "samples_per_ray" in h]
     n_rays = trainer.cfg.rays_per_step
@@ -200,6 +245,7 @@ def run(args: argparse.Namespace) -> int:
         preset=args.preset,
         warmup=args.warmup,
         rays_per_step=n_rays,
+        samples_per_ray=(sum(spr) / len(spr)) if spr else None,
         samples_per_step=(2 * n_rays * sum(spr) / len(spr)) if spr else None,
         session=session_info(device, args.commit),
     )

@@ -298,7 +298,8 @@ class TrainConfig:
     steps: int | None = None  # budget: stop at whichever of steps / minutes comes first
     minutes: float | None = None  # training time, evaluation excluded
     distortion_weight: float | None = None
-    checkpoint_every_s: float = 120.0
+    checkpoint_every_s: float = 30.0  # wall seconds between checkpoints (0: only at the end)
+    checkpoint_every_steps: int = 0  # and/or every this many steps (0: by time only)
     eval_every_s: float = 30.0  # quick eval for the progress bar (0: never)
     eval_views: int = 3
     eval_scale: float = 0.25
@@ -355,6 +356,7 @@ class TrainConfig:
             "distortion_weight",
             "must be >= 0",
         )
+        _check(self.checkpoint_every_steps >= 0, where, "checkpoint_every_steps", "must be >= 0")
         _check(self.eval_scale > 0, where, "eval_scale", "must be positive")
         _check(
             self.chunk >= 1 and self.log_every >= 1, where, "chunk/log_every", "must be positive"

@@ -10,13 +10,22 @@ together; SSIM (scikit-image) and LPIPS (AlexNet) are averaged over views.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from .data.formats.native import Scene
+from .data.rig import Intrinsics
 from .errors import InputError
+from .io import write_image, write_json
+from .run import load_run, read_progress, scene_background
 
 GAMMA = 2.2
 LOG_EPS = 0.1
@@ -135,6 +144,102 @@ def quick_psnr(pred: np.ndarray, gt: np.ndarray) -> float:
     return psnr(color_correct(pred, gt), gt)
 
 
+# -- the one evaluation path: which views, at which scale, and how a field is scored ------------
+
+
+def eval_view_indices(n_test: int, max_views: int | None = None) -> np.ndarray:
+    """THE rule for which test views an evaluation uses: all of them, or `max_views` evenly
+    spaced ones (linspace over [0, n_test − 1], first and last included, rounded, unique)."""
+    if max_views is None or max_views >= n_test:
+        return np.arange(n_test)
+    return np.unique(np.linspace(0, n_test - 1, max(1, max_views)).round().astype(int))
+
+
+@dataclass
+class EvalSet:
+    """Fixed test views of one scene, ready to score a field on.
+
+    views: (V,) indices into the scene's test views; c2w: (V, 4, 4) float64 camera-to-world;
+    intrinsics: `Intrinsics` at the evaluation scale; gt: (V, H, W, 3) float32 display space;
+    near: world units; background: (3,) display-space colour or None; n_test: test views in
+    the scene; scale: fraction of the sensor resolution.
+    """
+
+    views: np.ndarray
+    c2w: np.ndarray
+    intrinsics: Intrinsics
+    gt: np.ndarray
+    near: float
+    background: list[float] | None
+    n_test: int
+    scale: float
+
+    def subset(self, k: int) -> EvalSet:
+        """The first `k` views (a warm-up render, say)."""
+        return dataclasses.replace(self, views=self.views[:k], c2w=self.c2w[:k], gt=self.gt[:k])
+
+
+def make_eval_set(scene: Scene, max_views: int | None = None, scale: float = 1.0) -> EvalSet:
+    """The evaluation set of a loaded scene: views by `eval_view_indices`, at `scale`."""
+    sc = scene.config
+    if scene.test_c2w is None or not scene.test_rgb_paths:
+        raise InputError(f"{scene.root}: no ground-truth test views (test/poses.npz, test/rgb)")
+    if not (scale > 0 and math.isfinite(scale)):
+        raise InputError(f"evaluation scale must be a positive number, got {scale}")
+    n = len(scene.test_c2w)
+    views = eval_view_indices(n, max_views)
+    intr = Intrinsics.from_config(sc.intrinsics, sc.width, sc.height)
+    if scale != 1.0:
+        intr = intr.scaled(scale)
+    gt = load_gt(scene, views, (intr.height, intr.width))
+    c2w = np.asarray(scene.test_c2w)[views]
+    return EvalSet(views, c2w, intr, gt, sc.near, scene_background(sc), n, scale)
+
+
+def render_eval_set(field, ev: EvalSet, chunk: int = 16384, progress: bool = False) -> np.ndarray:
+    """Render `field` from every view of `ev`: (V, H, W, 3) float32 in [0, 1] (clamped)."""
+    from .render import render_image
+
+    preds = []
+    for c2w in tqdm(ev.c2w, desc="eval", unit="view", disable=not progress, leave=False):
+        img = render_image(
+            field, c2w, ev.intrinsics, near=ev.near, background=ev.background, chunk=chunk
+        )
+        preds.append(img["rgb"].clamp(0, 1).cpu().numpy())
+    return np.stack(preds)
+
+
+def score(pred: np.ndarray, gt: np.ndarray) -> tuple[dict[str, float], np.ndarray]:
+    """Metrics of pred against gt (both (V, H, W, 3)) after the colour correction.
+
+    Returns ({psnr, ssim, psnr_uncorrected}, corrected (V, H, W, 3) float32).
+    """
+    corrected = color_correct(pred, gt)
+    metrics = {
+        "psnr": psnr(corrected, gt),
+        "ssim": ssim(corrected, gt),
+        "psnr_uncorrected": psnr(pred, gt),
+    }
+    return metrics, corrected
+
+
+def evaluate_field(
+    field, ev: EvalSet, chunk: int = 16384, progress: bool = False
+) -> tuple[dict[str, float], np.ndarray]:
+    """Render and score `field` on `ev` (no autocast; colours clamped before the correction):
+    what `fastenerf eval`, the trainer's periodic evaluation and every benchmark report.
+
+    Returns (metrics with render_seconds_per_view, corrected predictions (V, H, W, 3)).
+    """
+    t = time.perf_counter()
+    with torch.no_grad():
+        pred = render_eval_set(field, ev, chunk, progress)
+    render_s = time.perf_counter() - t
+    metrics, corrected = score(pred, ev.gt)
+    metrics["render_seconds_per_view"] = render_s / len(ev.views)
+    return metrics, corrected
+
+
 def evaluate_run(
     run_dir: str | Path,
     *,
@@ -148,72 +253,44 @@ def evaluate_run(
 
     run_dir: a training run (RUN/config.json + RUN/checkpoint.pt); max_views: evenly chosen
     subset of the test views (None: all); scale: render (and compare) at this fraction of the
-    sensor resolution (ground truth is resized with anti-aliasing). Writes RUN/metrics.json,
-    corrected PNGs under out_dir (default RUN/eval/) and a pred | gt | error sheet.
+    sensor resolution (ground truth is resized with anti-aliasing). Writes metrics.json,
+    corrected PNGs and a pred | gt | error sheet into out_dir (default RUN/eval/, and then
+    RUN/metrics.json too); an `out_dir` elsewhere leaves the run folder untouched.
     """
-    from tqdm import tqdm
-
-    from .data.formats.native import Scene
-    from .data.rig import Intrinsics
-    from .io import write_image, write_json
-    from .render import render_image
-    from .train import load_run, read_progress, scene_background
-
     run_dir = Path(run_dir)
     field, scene, cfg = load_run(run_dir)
     if not isinstance(scene, Scene):
         raise InputError(f"{run_dir}: the run's scene folder is not available, cannot evaluate")
-    sc = scene.config
-    if scene.test_c2w is None or not scene.test_rgb_paths:
-        raise InputError(f"{scene.root}: no ground-truth test views (test/poses.npz, test/rgb)")
-    n = len(scene.test_c2w)
-    views = np.arange(n)
-    if max_views is not None and max_views < n:
-        views = np.unique(np.linspace(0, n - 1, max(1, max_views)).round().astype(int))
-    intr = Intrinsics.from_config(sc.intrinsics, sc.width, sc.height)
-    if scale != 1.0:
-        intr = intr.scaled(scale)
-    gt = load_gt(scene, views, (intr.height, intr.width))
-    bg = scene_background(sc)
-    t = time.perf_counter()
-    preds = []
-    for i in tqdm(views, desc="eval", unit="view", disable=not progress, leave=False):
-        img = render_image(
-            field, scene.test_c2w[i], intr, near=sc.near, background=bg, chunk=chunk or cfg.chunk
-        )
-        preds.append(img["rgb"].clamp(0, 1).cpu().numpy())
-    render_s = time.perf_counter() - t
-    pred = np.stack(preds)
-    corrected = color_correct(pred, gt)
-    lp, lp_note = lpips_score(corrected, gt)
+    ev = make_eval_set(scene, max_views, scale)
+    metrics, corrected = evaluate_field(field, ev, chunk or cfg.chunk, progress)
+    lp, lp_note = lpips_score(corrected, ev.gt)
     if lp is None:
         print(lp_note)
     info = read_progress(run_dir)
-    metrics = {
-        "psnr": psnr(corrected, gt),
-        "ssim": ssim(corrected, gt),
-        "lpips": lp,
-        "lpips_note": lp_note,
-        "psnr_uncorrected": psnr(pred, gt),
-        "n_views": len(views),
-        "views": views.tolist(),
-        "resolution": [intr.width, intr.height],
-        "train_seconds": info.get("train_seconds"),
-        "steps": info.get("step"),
-        "backend": cfg.backend,
-        "preset": cfg.preset,
-        "render_seconds_per_view": render_s / len(views),
-        "color_correction": COLOR_CORRECTION,
-        "scene": sc.name,
-    }
-    out_dir = Path(out_dir) if out_dir is not None else run_dir / "eval"
-    for k, i in enumerate(views):
+    metrics.update(
+        lpips=lp,
+        lpips_note=lp_note,
+        n_views=len(ev.views),
+        views=ev.views.tolist(),
+        resolution=[ev.intrinsics.width, ev.intrinsics.height],
+        train_seconds=info.get("train_seconds"),
+        steps=info.get("step"),
+        backend=cfg.backend,
+        preset=cfg.preset,
+        color_correction=COLOR_CORRECTION,
+        scene=scene.config.name,
+    )
+    in_run = out_dir is None
+    out_dir = run_dir / "eval" if in_run else Path(out_dir)
+    for k, i in enumerate(ev.views):
         write_image(out_dir / f"{int(i):04d}.png", corrected[k])
     sheet = out_dir / "sheet.png"
-    write_image(sheet, comparison_sheet(corrected, gt))
+    write_image(sheet, comparison_sheet(corrected, ev.gt))
     metrics["images"] = str(out_dir)
     metrics["sheet"] = str(sheet)
-    write_json(run_dir / "metrics.json", metrics)
+    write_json(out_dir / "metrics.json", metrics)
+    if in_run:
+        write_json(run_dir / "metrics.json", metrics)
     return metrics
 
 

@@ -136,7 +136,7 @@ def test_summary_speedup_time_to_psnr_and_60s_gap():
             "protocol": {
                 "preset": "fast",
                 "budgets_s": {"ngp": 300, "vanilla": 480},
-                "eval_every_k": {"s": 10},
+                "eval_views_used": {"s": [0, 10, 20]},
                 "eval_scale": 1.0,
                 "warmup_steps": 2,
             },

@@ -208,7 +208,8 @@ def test_mesh_cli_on_a_run(tmp_path, scene_config, random_stream):
     from fastenerf.config import TrainConfig
     from fastenerf.data.formats.native import load_scene, save_scene
     from fastenerf.mesh import density_grid
-    from fastenerf.train import Trainer, load_run
+    from fastenerf.run import load_run
+    from fastenerf.train import Trainer
 
     cfg = scene_config(width=16, height=12, cylinder=CylinderConfig(), kind="real")
     save_scene(tmp_path / "scene", cfg, random_stream(width=16, height=12))

@@ -17,7 +17,8 @@ from fastenerf.config import train_preset
 from fastenerf.data.formats.native import load_scene
 from fastenerf.errors import InputError
 from fastenerf.evaluate import evaluate_run, psnr
-from fastenerf.train import Trainer, load_run
+from fastenerf.run import load_run
+from fastenerf.train import Trainer
 
 # Small enough for a 2-core CPU, big enough to learn the tiny scene.
 VANILLA_TINY = {

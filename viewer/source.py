@@ -219,7 +219,7 @@ class ViewSource:
     @classmethod
     def from_run(cls, run_dir: str | Path) -> ViewSource:
         """A run folder written by `fastenerf train` (finished, or still training)."""
-        from fastenerf.train import load_run
+        from fastenerf.run import load_run
 
         run_dir = Path(run_dir)
         if not run_dir.is_dir():
@@ -339,7 +339,7 @@ class RunWatcher:
         s = self._stamp("checkpoint.pt")
         if s == self._ckpt:
             return None
-        from fastenerf.train import load_run
+        from fastenerf.run import load_run
 
         try:
             f, _, _ = load_run(self.run_dir)
@@ -353,7 +353,7 @@ class RunWatcher:
         return dirty
 
     def stats(self) -> TrainStats | None:
-        from fastenerf.train import read_progress
+        from fastenerf.run import read_progress
 
         path = self.run_dir / "metrics.jsonl"
         if not path.is_file():

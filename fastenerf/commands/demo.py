@@ -98,7 +98,8 @@ def run(args: argparse.Namespace) -> int:
     from ..data.synth import DEFAULT_SCENE, make_scene
     from ..errors import InputError
     from ..evaluate import evaluate_run, format_metrics
-    from ..train import Trainer, resolve_device
+    from ..run import resolve_device
+    from ..train import Trainer
     from .render import render_path
 
     t_start = time.perf_counter()
@@ -134,6 +135,8 @@ def run(args: argparse.Namespace) -> int:
     )
     trainer = Trainer(scene, cfg, run_dir)
     summary = trainer.run(progress=progress)
+    if summary["failure"]:
+        raise InputError(summary["failure"])
     if summary["interrupted"]:
         print(f"interrupted; the run is in {run_dir} (resume with fastenerf train --resume)")
         return 130

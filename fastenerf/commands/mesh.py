@@ -38,7 +38,7 @@ def run(args) -> int:
 
     from ..errors import InputError
     from ..mesh import export_mesh, field_mesh, write_mesh_png
-    from ..train import load_run
+    from ..run import load_run
 
     out = Path(args.out)
     if out.suffix.lower() not in (".ply", ".glb", ".obj"):

@@ -139,7 +139,7 @@ def render_path(
     from ..data.rig import Intrinsics
     from ..io import write_image
     from ..render import render_image
-    from ..train import load_run, scene_background
+    from ..run import load_run, scene_background
 
     field, scene, cfg = load_run(run_dir)
     sc, root = (scene.config, scene.root) if isinstance(scene, Scene) else (scene, None)

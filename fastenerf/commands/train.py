@@ -63,7 +63,7 @@ def build_config(args: argparse.Namespace):
             raise InputError("--options must be a JSON object")
     conf_path = Path(args.out) / "config.json"
     if args.resume and conf_path.is_file():
-        from ..train import read_run_config
+        from ..run import read_run_config
 
         cfg = TrainConfig.from_dict(read_run_config(args.out)["train"], str(conf_path))
         # Flags given now must agree with the run (the trainer checks); the budget may change.
@@ -95,6 +95,7 @@ def build_config(args: argparse.Namespace):
 
 def run(args: argparse.Namespace) -> int:
     from ..data.formats import load_scene_folder
+    from ..errors import InputError
     from ..train import Trainer
 
     cfg = build_config(args)
@@ -109,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
         + (f", resuming at step {trainer.step_count}" if args.resume else "")
     )
     summary = trainer.run(progress=not args.no_progress)
+    if summary["failure"]:
+        raise InputError(summary["failure"])
     psnr = summary["last_eval_psnr"]
     print(
         f"{summary['steps']} steps in {summary['train_seconds']:.1f} s training "

@@ -15,6 +15,7 @@ import torch
 
 from ..config import IntrinsicsConfig, SceneConfig, TrajectoryConfig
 from ..errors import InputError
+from .poses import load_poses
 
 # RGGB: R at (even row, even col), G at (even, odd) and (odd, even), B at (odd, odd).
 BAYER_RGGB = np.array([[0, 1], [1, 2]], dtype=np.int64)
@@ -249,8 +250,6 @@ class Rig:
                 traj = TimedPoses(*poses, source=f"{cfg.name}: poses")
             else:
                 path = Path(folder or ".") / tr.poses_file
-                from .formats.native import load_poses
-
                 t, c2w = load_poses(path)
                 traj = TimedPoses(t, c2w, source=str(path))
         else:

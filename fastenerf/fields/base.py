@@ -57,6 +57,19 @@ class Field(torch.nn.Module):
     def update(self, step: int) -> None:
         """Per-step housekeeping (the ngp occupancy grid); a no-op by default."""
 
+    def param_groups(self) -> list[dict]:
+        """Optimiser parameter groups (a group may set its own "lr"); default: one group of
+        every trainable parameter."""
+        return [{"params": [p for p in self.parameters() if p.requires_grad]}]
+
+    def observe_cameras(self, K, c2w, width: int, height: int, near: float) -> None:
+        """Tell the field which space the training cameras see, K (3, 3) pixels, c2w (M, 4, 4)
+        OpenCV camera-to-world (ngp keeps space no camera sees empty); a no-op by default."""
+
+    def built(self) -> dict:
+        """The parts of the field this scene switched on (saved in the run's config.json)."""
+        return {}
+
     def config_dict(self) -> dict:
         """The constructor arguments, saved in checkpoints so a run can rebuild its field."""
         raise NotImplementedError

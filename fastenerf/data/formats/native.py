@@ -22,6 +22,8 @@ from ...config import SceneConfig
 from ...errors import InputError
 from ...io import atomic_path, read_npz, savez, write_image
 from ..events import EventStream
+from ..poses import load_poses, save_poses
+from ..rig import Rig
 
 EVENT_KEYS = ("x", "y", "t", "p")
 SIZE_KEYS = ("width", "height")  # optional, in files written by `write_events`
@@ -44,10 +46,8 @@ class Scene:
     test_rgb_paths: list[Path] | None = None
     poses: tuple[np.ndarray, np.ndarray] | None = None
 
-    def rig(self):
+    def rig(self) -> Rig:
         """The scene's `Rig` (intrinsics, pose(t), Bayer), from the in-memory poses if any."""
-        from ..rig import Rig
-
         return Rig.from_scene(self.config, self.root, self.poses)
 
     def load_test_images(self) -> np.ndarray:
@@ -120,27 +120,6 @@ def write_events(path: str | Path, ev: EventStream) -> Path:
         return path
     size = {"width": np.int64(ev.width), "height": np.int64(ev.height)}
     return savez(path, compressed=True, **arrays, **size)
-
-
-def load_poses(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(t (M,) int64 µs, c2w (M, 4, 4) float64) from a poses npz, validated."""
-    path = Path(path)
-    z = read_npz(path, ("t", "c2w"), what="poses file")
-    t, c2w = z["t"], z["c2w"]
-    if c2w.ndim != 3 or c2w.shape[1:] != (4, 4):
-        raise InputError(f"{path}: 'c2w' must be (M, 4, 4), got {c2w.shape}")
-    if t.shape != (len(c2w),):
-        raise InputError(f"{path}: {len(c2w)} poses but 't' has shape {t.shape}")
-    if t.dtype.kind not in "iuf" or (t.dtype.kind == "f" and not np.all(np.isfinite(t))):
-        raise InputError(f"{path}: 't' must be finite numbers (µs), got dtype {t.dtype}")
-    if not np.all(np.isfinite(c2w)):
-        i = int(np.flatnonzero(~np.isfinite(c2w).reshape(len(c2w), -1).all(1))[0])
-        raise InputError(f"{path}: pose {i} contains NaN or inf")
-    return t.astype(np.int64), c2w.astype(np.float64)
-
-
-def save_poses(path: str | Path, t: np.ndarray, c2w: np.ndarray) -> Path:
-    return savez(path, t=np.asarray(t, np.int64), c2w=np.asarray(c2w, np.float64))
 
 
 def load_scene(root: str | Path) -> Scene:

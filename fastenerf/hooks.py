@@ -1,0 +1,314 @@
+"""Training callbacks: what happens around the steps of the one training loop.
+
+`Trainer.run(hooks)` calls, for every hook in order, `on_start(trainer)` once, then
+`after_step(trainer, stats)` after each step, `before_checkpoint(trainer)` before each
+checkpoint is written, and `on_end(trainer, summary)` once. A hook may add keys to `stats`
+(they reach metrics.jsonl) and may call `trainer.request_stop()` or `trainer.fail(msg)`.
+The command line, the benchmarks and the viewer's live training differ only in their hooks;
+none of them steps the trainer itself (nerfstudio's training callbacks are the model).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from .evaluate import EvalSet, evaluate_field, make_eval_set
+from .progress import progress_bar
+from .run import METRICS_LOG
+
+if TYPE_CHECKING:
+    from .train import Trainer
+
+
+class Hook:
+    """A training callback; every method is a no-op by default."""
+
+    def on_start(self, trainer: Trainer) -> None:
+        pass
+
+    def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
+        pass
+
+    def before_checkpoint(self, trainer: Trainer) -> None:
+        pass
+
+    def on_end(self, trainer: Trainer, summary: dict[str, Any]) -> None:
+        pass
+
+
+def evaluate_now(trainer: Trainer, ev: EvalSet) -> dict[str, float]:
+    """Score the trainer's field on `ev` between steps; the time goes to `eval_seconds`."""
+    t = time.perf_counter()
+    with trainer.lock:
+        metrics, _ = evaluate_field(trainer.field, ev, trainer.cfg.chunk)
+    trainer.sync()
+    trainer.eval_seconds += time.perf_counter() - t
+    trainer.last_eval_psnr = metrics["psnr"]
+    return metrics
+
+
+class PeriodicEval(Hook):
+    """Every `every_s` wall seconds, the colour-corrected PSNR on the run's evaluation set
+    (`cfg.eval_views` views at `cfg.eval_scale`) as `eval_psnr` in the step's stats."""
+
+    def __init__(self, every_s: float):
+        self.every_s = every_s
+        self.ev: EvalSet | None = None
+        self.last = 0.0
+
+    def on_start(self, trainer: Trainer) -> None:
+        self.last = time.perf_counter()
+
+    def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
+        if self.every_s <= 0 or time.perf_counter() - self.last < self.every_s:
+            return
+        scene = trainer.scene
+        if scene.test_c2w is None or not scene.test_rgb_paths:
+            return
+        if self.ev is None:
+            c = trainer.cfg
+            self.ev = make_eval_set(scene, c.eval_views, c.eval_scale)
+        stats["eval_psnr"] = evaluate_now(trainer, self.ev)["psnr"]
+        self.last = time.perf_counter()
+
+
+class ScheduledEval(Hook):
+    """Evaluates on `ev` at the first step whose training clock passes each of `times` (s),
+    hands each point to `on_point(point)` and stops the run after the last one.
+
+    A point: target_s, train_s, step, psnr, ssim, psnr_uncorrected, eval_s, and the means
+    since the previous point of loss, samples_per_step and step_ms.
+    """
+
+    def __init__(self, ev: EvalSet, times: list[float], on_point: Callable[[dict], None]):
+        self.ev = ev
+        self.pending = sorted(times)
+        self.on_point = on_point
+        self._reset()
+
+    def _reset(self) -> None:
+        self.acc = {"loss": 0.0, "n": 0, "samples": 0.0, "step_s": 0.0, "steps": 0}
+        self.clock = None
+
+    def on_start(self, trainer: Trainer) -> None:
+        self.pending = [t for t in self.pending if t > trainer.train_seconds]
+        self.clock = trainer.train_seconds
+        if not self.pending:
+            trainer.request_stop()
+
+    def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
+        a = self.acc
+        if math.isfinite(stats["loss"]):
+            a["loss"] += stats["loss"]
+            a["n"] += 1
+        a["samples"] += stats.get("samples_per_ray", float("nan")) * trainer.rays_per_step_total
+        a["steps"] += 1
+        train_s = trainer.train_seconds
+        if not self.pending or train_s < self.pending[0]:
+            return
+        target = self.pending.pop(0)
+        while self.pending and train_s >= self.pending[0]:  # one long step passed several
+            target = self.pending.pop(0)
+        te = time.perf_counter()
+        metrics = evaluate_now(trainer, self.ev)
+        point = {
+            "target_s": target,
+            "train_s": train_s,
+            "step": trainer.step_count,
+            **{k: v for k, v in metrics.items() if k != "render_seconds_per_view"},
+            "eval_s": time.perf_counter() - te,
+            "loss": a["loss"] / a["n"] if a["n"] else float("nan"),
+            "samples_per_step": a["samples"] / max(a["steps"], 1),
+            "step_ms": 1e3 * (train_s - self.clock) / max(a["steps"], 1),
+        }
+        stats["eval_psnr"] = metrics["psnr"]
+        self._reset()
+        self.clock = train_s
+        self.on_point(point)
+        if not self.pending:
+            trainer.request_stop()
+        trainer.save_checkpoint(finished=not self.pending)
+
+    @property
+    def finished(self) -> bool:
+        return not self.pending
+
+
+class MetricsLog(Hook):
+    """Appends a JSON line of the step's stats to RUN/metrics.jsonl every `log_every` steps,
+    for the first ten steps, at every evaluation and at the last step."""
+
+    def __init__(self, log_every: int):
+        self.log_every = log_every
+        self.file = None
+        self.wall_start = 0.0
+
+    def on_start(self, trainer: Trainer) -> None:
+        self.file = open(Path(trainer.out_dir) / METRICS_LOG, "a")  # noqa: SIM115 - on_end
+        self.wall_start = time.perf_counter() - trainer.wall_seconds
+
+    def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
+        s = trainer.step_count
+        if s % self.log_every == 0 or s <= 10 or "eval_psnr" in stats or trainer.done():
+            stats["wall_s"] = time.perf_counter() - self.wall_start
+            self.file.write(json.dumps(stats) + "\n")
+            self.file.flush()
+
+    def on_end(self, trainer: Trainer, summary: dict[str, Any]) -> None:
+        if self.file is not None:
+            self.file.close()
+            self.file = None
+
+
+class ProgressBar(Hook):
+    """A tqdm bar over the budget (steps or seconds), quiet when stderr is not a terminal."""
+
+    def __init__(self, enabled: bool = True):
+        self.enabled = enabled
+        self.bar = None
+        self.last = 0.0
+
+    def on_start(self, trainer: Trainer) -> None:
+        c = trainer.cfg
+        self.by_steps = c.steps is not None
+        self.total = c.steps if self.by_steps else int(round(60 * c.minutes))
+        self.bar = progress_bar(
+            total=self.total,
+            initial=trainer.step_count if self.by_steps else int(trainer.train_seconds),
+            unit="step" if self.by_steps else "s",
+            desc=f"train {c.backend}",
+            enabled=self.enabled,
+        )
+
+    def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
+        now = time.perf_counter()
+        if now - self.last < 0.25 and not trainer.done():
+            return
+        self.last = now
+        n = trainer.step_count if self.by_steps else int(trainer.train_seconds)
+        self.bar.n = min(self.total, n)
+        post = {
+            "loss": f"{stats['loss']:.4f}",
+            "rays/s": f"{stats['rays_per_s']:.3g}",
+            "t": f"{trainer.train_seconds:.0f}s",
+        }
+        if trainer.last_eval_psnr is not None:
+            post["psnr"] = f"{trainer.last_eval_psnr:.2f}"
+        self.bar.set_postfix(post, refresh=True)
+
+    def on_end(self, trainer: Trainer, summary: dict[str, Any]) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+class Checkpointer(Hook):
+    """A checkpoint every `every_s` training seconds or `every_steps` steps (0: never), and
+    one at the end (marked finished unless the run was interrupted). Not while losses are
+    non-finite, and not at the end of a run stopped for divergence: the last checkpoint
+    written then is the last good one."""
+
+    def __init__(self, every_s: float, every_steps: int = 0):
+        self.every_s = every_s
+        self.every_steps = every_steps
+
+    def on_start(self, trainer: Trainer) -> None:
+        self.last_t = time.perf_counter()
+        self.last_step = trainer.step_count
+
+    def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
+        if trainer.nonfinite_run > 0:
+            return
+        due_t = self.every_s > 0 and time.perf_counter() - self.last_t >= self.every_s
+        due_s = self.every_steps > 0 and trainer.step_count - self.last_step >= self.every_steps
+        if due_t or due_s:
+            trainer.save_checkpoint(finished=False, background=True)
+            self.last_t = time.perf_counter()
+            self.last_step = trainer.step_count
+
+    def on_end(self, trainer: Trainer, summary: dict[str, Any]) -> None:
+        if trainer.failure is None:
+            summary["checkpoint"] = str(trainer.save_checkpoint(finished=not trainer.stopped))
+        trainer.wait_for_checkpoint()
+
+
+class DivergenceGuard(Hook):
+    """Stops the run after `patience` consecutive non-finite losses (their steps never reach
+    the weights), with one line saying so; the last checkpoint stays the last good one."""
+
+    def __init__(self, patience: int = 20):
+        self.patience = patience
+
+    def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
+        if trainer.nonfinite_run >= self.patience:
+            trainer.fail(
+                f"training diverged: the loss was not finite for {trainer.nonfinite_run} "
+                f"steps in a row (at step {trainer.step_count}, lr {stats['lr']:.3g}); "
+                f"the last good checkpoint is kept in {trainer.out_dir} "
+                "(try a lower --lr)"
+            )
+
+
+class StopOnSignal(Hook):
+    """The first Ctrl-C (or SIGTERM) finishes the current step, checkpoints and returns; a
+    second Ctrl-C aborts at once (the last checkpoint on disk stays valid). Main thread only."""
+
+    def __init__(self, signals: tuple[int, ...] = (signal.SIGINT,)):
+        self.signals = signals
+        self.old: dict[int, Any] = {}
+        self.received = False  # stays set: one hook may watch several runs in a row
+
+    def on_start(self, trainer: Trainer) -> None:
+        if self.received:
+            trainer.request_stop()
+        self._install(trainer)
+
+    def _install(self, trainer: Trainer) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+
+        def handler(signum, frame):
+            if self.received and signum == signal.SIGINT:
+                raise KeyboardInterrupt
+            self.received = True
+            trainer.request_stop()
+
+        for sig in self.signals:
+            self.old[sig] = signal.signal(sig, handler)
+
+    def on_end(self, trainer: Trainer, summary: dict[str, Any]) -> None:
+        for sig, old in self.old.items():
+            signal.signal(sig, old)
+        self.old.clear()
+
+
+class Deadline(Hook):
+    """Stops the run once `time.perf_counter()` passes `deadline` (a call's wall budget)."""
+
+    def __init__(self, deadline: float | None):
+        self.deadline = deadline
+
+    def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
+        if self.deadline is not None and time.perf_counter() >= self.deadline:
+            trainer.request_stop()
+
+
+def default_hooks(trainer: Trainer, progress: bool = True) -> list[Hook]:
+    """What `fastenerf train` runs with: periodic evaluation, metrics log, progress bar,
+    divergence guard, checkpoints, Ctrl-C. Order matters: evaluation first, so its number
+    reaches the log and the bar of the same step."""
+    c = trainer.cfg
+    return [
+        PeriodicEval(c.eval_every_s),
+        MetricsLog(c.log_every),
+        ProgressBar(progress),
+        DivergenceGuard(),
+        Checkpointer(c.checkpoint_every_s, c.checkpoint_every_steps),
+        StopOnSignal(),
+    ]
