@@ -79,8 +79,8 @@ def perturb_poses(
     rig: the scene's training rig (timed or turntable); angle_deg: degrees in [0, 180);
     seed: non-negative int; grid_t: (G,) int64 µs training pose grid (`pose_grid_times`),
     required for a turntable rig (the poses it is sampled at), optional for a timed one (then
-    the report also gives the angles on the grid, where slerp between turned samples may give
-    less than the full angle).
+    the report also gives the angles on the grid: between samples slerp blends two turns about
+    different axes, mostly less than the angle asked).
     Returns a rig with a timed trajectory of the turned poses (same intrinsics, Bayer, loop)
     and a report: measured mean / max / min angle (degrees) between old and new rotations at the
     samples, the largest camera-centre shift (world units), the number of poses and the seed.
