@@ -514,9 +514,11 @@ class PerturbConfig:
         return self.pose_error_deg != 0.0 or self.noise_fraction != 0.0
 
     def validate(self, where: str = "perturb") -> PerturbConfig:
+        import numbers  # here, not at the top: this section is appended to a shared file
+
         for key in ("pose_error_deg", "noise_fraction"):
             v = getattr(self, key)
-            ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
             _check(ok, where, key, f"must be a finite number, got {v!r}")
         _check(
             0.0 <= self.pose_error_deg < 180.0,
@@ -531,7 +533,9 @@ class PerturbConfig:
             f"must be in [0, 10] (a fraction of the clean count), got {self.noise_fraction}",
         )
         _check(
-            isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0,
+            isinstance(self.seed, numbers.Integral)
+            and not isinstance(self.seed, bool)
+            and self.seed >= 0,
             where,
             "seed",
             f"must be a non-negative integer, got {self.seed!r}",
