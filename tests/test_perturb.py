@@ -244,6 +244,7 @@ def test_perturb_config_validation():
     assert PerturbConfig(noise_fraction=0.05).active
     c = PerturbConfig.from_dict({"pose_error_deg": 0.5, "noise_fraction": 0.15, "seed": 3})
     assert PerturbConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c
+    PerturbConfig(np.float32(0.5), np.float64(0.1), np.int64(3)).validate()  # levels from arrays
     bad = [
         ({"pose_error_deg": -0.1}, "pose_error_deg"),
         ({"pose_error_deg": 180}, "pose_error_deg"),
