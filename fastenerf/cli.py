@@ -26,6 +26,7 @@ COMMANDS = [
     "calibrate",
     "import",
     "demo",
+    "perturb",
 ]
 
 
