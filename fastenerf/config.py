@@ -309,6 +309,8 @@ class TrainConfig:
     device: str = "auto"
     chunk: int = 16384  # rays per render call outside training
     backend_options: dict[str, Any] = field(default_factory=dict)
+    perturb: PerturbConfig = field(default_factory=lambda: PerturbConfig())
+    """The robustness studies' perturbations of the training data (pose error, noise events)."""
 
     def validate(self, where: str = "train config") -> TrainConfig:
         _check(self.backend in ("ngp", "vanilla"), where, "backend", "must be 'ngp' or 'vanilla'")
@@ -366,7 +368,11 @@ class TrainConfig:
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:
         """A copy with every `None` replaced by its scene / device / backend default."""
         real = scene.kind == "real"
-        c = dataclasses.replace(self, backend_options=dict(self.backend_options))
+        c = dataclasses.replace(
+            self,
+            backend_options=dict(self.backend_options),
+            perturb=dataclasses.replace(self.perturb),
+        )
         if c.log_eps is None:
             if c.preset != "eventnerf" and scene.sim_log_eps:
                 # A simulated scene records the eps its events were made with: the matched log

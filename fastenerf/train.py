@@ -30,6 +30,7 @@ from .fields import Field, make_field
 from .hooks import Hook, default_hooks
 from .io import write_json
 from .losses import total_loss
+from .perturb import perturb_training_data
 from .run import (
     CHECKPOINT,
     load_checkpoint,
@@ -115,9 +116,10 @@ class Trainer:
     def _build_data(self, scene: Scene) -> None:
         """Rig, event index, window and ray samplers: the data half of the pipeline."""
         sc, c = scene.config, self.cfg
-        self.rig = scene.rig()
+        # the studies' perturbations (identity at zero levels); test views stay exact
+        self.rig, events, self.perturbation = perturb_training_data(scene, c.perturb)
         self.index = EventIndex(
-            scene.events,
+            events,
             sc.pos_threshold,
             sc.neg_threshold,
             sc.polarity_offset,
@@ -197,6 +199,7 @@ class Trainer:
                 "scene_fingerprint": scene_fingerprint(self.scene),
                 "field": self.field.config_dict(),
                 "built": self.built(),
+                "perturbation": self.perturbation,
                 "versions": {"torch": torch.__version__, "fastenerf": __version__},
             },
         )
