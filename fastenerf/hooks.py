@@ -234,7 +234,8 @@ class Checkpointer(Hook):
 
     def on_end(self, trainer: Trainer, summary: dict[str, Any]) -> None:
         if trainer.failure is None:
-            summary["checkpoint"] = str(trainer.save_checkpoint(finished=not trainer.stopped))
+            finished = not summary["interrupted"]
+            summary["checkpoint"] = str(trainer.save_checkpoint(finished=finished))
         trainer.wait_for_checkpoint()
 
 
