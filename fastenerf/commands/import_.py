@@ -63,8 +63,9 @@ def add_arguments(p) -> None:
     )
     p.add_argument(
         "--intrinsics",
-        metavar="K.txt",
-        help="3x3 K (OpenCV), or the EventNeRF 4x4 / 5x4 file (5th row: k1 k2 0 0)",
+        metavar="FILE",
+        help="3x3 K.txt (OpenCV), the EventNeRF 4x4 / 5x4 file (5th row: k1 k2 0 0), or the "
+        "intrinsics JSON `fastenerf calibrate --chequerboard` writes",
     )
     p.add_argument(
         "--cylinder",
@@ -86,6 +87,7 @@ def run(args) -> int:
     from ..data.formats.aedat import load_aedat4
     from ..data.formats.eventnerf import REAL_BACKGROUND
     from ..data.formats.native import save_scene
+    from ..data.intrinsics import read_intrinsics
     from ..errors import InputError
     from ..io import write_json
 
@@ -108,7 +110,7 @@ def run(args) -> int:
             )
             + ")"
         )
-    intr = _read_intrinsics(args.intrinsics, ev.width, ev.height) if args.intrinsics else None
+    intr = read_intrinsics(args.intrinsics, ev.width, ev.height) if args.intrinsics else None
     if intr is None:
         intr = IntrinsicsConfig(
             fx=float(ev.width), fy=float(ev.width), cx=ev.width / 2, cy=ev.height / 2
@@ -224,55 +226,3 @@ def run(args) -> int:
     )
     print(f"wrote {out}")
     return 0
-
-
-def _read_intrinsics(path: str, width: int, height: int):
-    """IntrinsicsConfig from K.txt (3x3 / 4x4 / 5x4) or a JSON object of IntrinsicsConfig."""
-    import json
-    from pathlib import Path
-
-    import numpy as np
-
-    from ..config import IntrinsicsConfig, from_dict
-    from ..errors import InputError
-
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: intrinsics file not found")
-    if p.suffix == ".json":
-        try:
-            d = json.loads(p.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise InputError(f"{p}: not valid JSON ({e})") from None
-        c = from_dict(IntrinsicsConfig, d, str(p))
-    else:
-        try:
-            vals = np.array([float(v) for v in p.read_text().split()], dtype=np.float64)
-        except (ValueError, UnicodeDecodeError) as e:
-            raise InputError(f"{p}: not a matrix of numbers ({e})") from None
-        if len(vals) not in (9, 16, 20) or not np.all(np.isfinite(vals)):
-            raise InputError(
-                f"{p}: expected a 3x3, 4x4 or 5x4 matrix of finite numbers, found "
-                f"{len(vals)} numbers"
-            )
-        cols = 3 if len(vals) == 9 else 4
-        m = vals.reshape(-1, cols)
-        if abs(m[0, 1]) > 1e-9 or abs(m[1, 0]) > 1e-9 or np.abs(m[2, :3] - [0, 0, 1]).max() > 1e-9:
-            raise InputError(f"{p}: K must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)")
-        k1, k2 = (m[4, 0], m[4, 1]) if len(m) == 5 else (0.0, 0.0)
-        c = IntrinsicsConfig(
-            fx=float(m[0, 0]),
-            fy=float(m[1, 1]),
-            cx=float(m[0, 2]),
-            cy=float(m[1, 2]),
-            k1=float(k1),
-            k2=float(k2),
-            distortion_model="eventnerf" if len(m) == 5 else "opencv",
-        )
-    if c.fx <= 0 or c.fy <= 0:
-        raise InputError(f"{p}: focal lengths must be positive (fx={c.fx}, fy={c.fy})")
-    if not (0 <= c.cx <= width and 0 <= c.cy <= height):
-        raise InputError(
-            f"{p}: principal point ({c.cx}, {c.cy}) lies outside the {width}x{height} sensor"
-        )
-    return c
