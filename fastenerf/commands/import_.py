@@ -12,6 +12,8 @@ from __future__ import annotations
 HELP = "import an AEDAT4 recording (DV, DAVIS 346/346C) as a native scene folder"
 
 IMPORT_FILE = "import.json"
+FRAMES_DIR = "frames"
+TIMESTAMPS_FILE = "timestamps.txt"  # as fastenerf.data.chequerboard reads it
 
 
 def add_arguments(p) -> None:
@@ -77,6 +79,13 @@ def add_arguments(p) -> None:
     )
     p.add_argument("--no-cylinder", action="store_true", help="no density clip")
     p.add_argument("--name", help="scene name (default: the recording's file name)")
+    p.add_argument(
+        "--frames",
+        action="store_true",
+        help="also write the APS frames: SCENE/frames/NNNNNN.png and SCENE/frames/"
+        f"{TIMESTAMPS_FILE} (lines 'FILE T_US', DV's clock, middle of each exposure), which "
+        "`fastenerf calibrate --chequerboard SCENE/frames` reads",
+    )
 
 
 def run(args) -> int:
@@ -92,7 +101,9 @@ def run(args) -> int:
     from ..io import write_json
 
     crop = None if args.crop is None else (round(args.crop[0]), round(args.crop[1]))
-    rec = load_aedat4(args.recording, t_crop_us=crop)
+    rec = load_aedat4(args.recording, t_crop_us=crop, keep_frames=args.frames)
+    if args.frames and not rec.frames:
+        raise InputError(f"{args.recording}: --frames, but the recording has no APS frames")
     ev = rec.events
     print(
         f"{args.recording}: {len(ev):,} events, {ev.width}x{ev.height}, "
@@ -182,7 +193,8 @@ def run(args) -> int:
         )
         print(
             "warning: no --turntable or --poses: wrote a placeholder turntable; run "
-            f"`fastenerf calibrate POSES.npz --out CALIB.json --scene {args.out}` next"
+            "`fastenerf calibrate --chequerboard CALIB.aedat4 --board COLSxROWS --square SIDE "
+            f"--out CALIB.json --scene {args.out}` (or with POSES.npz) next"
         )
     if not all(math.isfinite(v) for v in (traj.radius, traj.period_us)):
         raise InputError(f"{args.turntable}: turntable parameters are not finite")
@@ -216,8 +228,11 @@ def run(args) -> int:
             "events": len(ev),
             "trajectory_from": args.turntable or args.poses or None,
             "intrinsics_from": args.intrinsics,
+            "frames": len(rec.frames) if args.frames else None,
         },
     )
+    if args.frames:
+        print(f"wrote {_write_frames(out / FRAMES_DIR, rec, args.recording)}")
     save_scene(out, cfg, ev, poses=poses)
     n_pos = int((ev.p > 0).sum())
     print(
@@ -226,3 +241,25 @@ def run(args) -> int:
     )
     print(f"wrote {out}")
     return 0
+
+
+def _write_frames(folder, rec, source: str):
+    """The recording's APS frames as PNGs (8- or 16-bit gray, or RGB(A)) with a timestamps
+    file, replacing `folder` as a whole (atomically)."""
+    import imageio.v3 as iio
+
+    from ..io import atomic_dir
+
+    lines = [
+        f"# APS frames of {source}: FILE T_US (DV clock, µs since the epoch, middle of the "
+        "exposure)",
+        f"# the scene's clock is T_US - {rec.t_origin_us} (import.json t_origin_us)",
+    ]
+    with atomic_dir(folder) as tmp:
+        for i, fr in enumerate(rec.frames):
+            name = f"{i:06d}.png"
+            iio.imwrite(tmp / name, fr.rgb())
+            lines.append(f"{name} {fr.t_us}")
+        (tmp / TIMESTAMPS_FILE).write_text("\n".join(lines) + "\n")
+    print(f"{len(rec.frames)} APS frames ({', '.join(rec.frame_formats)})")
+    return folder

@@ -256,7 +256,12 @@ def find_boards(
         times.append(t)
         corners.append(c)
     if n == 0:
-        raise InputError(f"{src}: no frames here (no images, or a recording with no APS frames)")
+        what = (
+            f"no images ({', '.join(IMAGE_SUFFIXES)}) in this folder"
+            if Path(src).is_dir()
+            else "the recording's frame stream has no frames"
+        )
+        raise InputError(f"{src}: {what}")
     have_t = len(times) > 0 and all(t is not None for t in times)
     return Detections(
         names,
@@ -275,15 +280,19 @@ def require_frames(det: Detections, src: str | Path, board: Board, rejected: int
     m, n = len(det.names), det.n_frames
     if det.n_found == 0:
         raise InputError(
-            f"{src}: board {board} not found in any of {n} frames (--board counts inner "
+            f"{src}: board {board} not found in {'the only frame' if n == 1 else f'any of {n} frames'} (--board counts inner "
             "corners: 9x6 for a board of 10x7 squares)"
         )
     if m < MIN_FRAMES:
         why = f", {rejected} of them rejected (reprojection error)" if rejected else ""
         raise InputError(
-            f"{src}: board {board} found in only {det.n_found} of {n} frames{why}; the "
+            f"{src}: board {board} found in only {det.n_found} of {_frames(n)}{why}; the "
             f"calibration needs at least {MIN_FRAMES} usable frames"
         )
+
+
+def _frames(n: int) -> str:
+    return f"{n} frame" + ("" if n == 1 else "s")
 
 
 # ------------------------------------------------------------------------------ lens, poses
