@@ -279,9 +279,10 @@ def require_frames(det: Detections, src: str | Path, board: Board, rejected: int
     found ones were dropped for their reprojection error)."""
     m, n = len(det.names), det.n_frames
     if det.n_found == 0:
+        where = "the only frame" if n == 1 else f"any of {n} frames"
         raise InputError(
-            f"{src}: board {board} not found in {'the only frame' if n == 1 else f'any of {n} frames'} (--board counts inner "
-            "corners: 9x6 for a board of 10x7 squares)"
+            f"{src}: board {board} not found in {where} (--board counts inner corners: 9x6 "
+            "for a board of 10x7 squares)"
         )
     if m < MIN_FRAMES:
         why = f", {rejected} of them rejected (reprojection error)" if rejected else ""
