@@ -165,6 +165,16 @@ def test_given_intrinsics_and_the_eventnerf_lens_model(tmp_path):
     assert d["chequerboard"]["intrinsics"]["distortion_model"] == "eventnerf"
 
 
+def test_lens_only(capture, tmp_path):
+    frames = capture[0]
+    out = tmp_path / "lens.json"
+    argv = ["calibrate", "--chequerboard", str(frames), "--board", "9x6", "--square", "0.04"]
+    assert cli(argv + ["--lens-only", "--out", str(out)]) == 0
+    lens = read_intrinsics(out, *SIZE)
+    assert lens.fx == pytest.approx(300.0, rel=0.01) and lens.k2 == pytest.approx(0.08, abs=0.02)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["lens.json"]  # nothing else
+
+
 def test_corners_follow_the_board_convention(capture):
     """Detected corners in `Board.object_points` order (origin at the centre, x right, y up,
     seen from the printed side), at the lens's projection to a fraction of a pixel."""

@@ -51,6 +51,13 @@ def add_arguments(p) -> None:
     )
     cb.add_argument("--every", type=int, default=1, metavar="N", help="use every N-th frame")
     cb.add_argument(
+        "--lens-only",
+        action="store_true",
+        help="calibrate the lens only and write it to --out (intrinsics JSON): for a "
+        "recording of the board held at varied tilts, when the turntable views alone do not "
+        "pin the lens down",
+    )
+    cb.add_argument(
         "--no-times",
         action="store_true",
         help="ignore the frames' times (a plate turned by hand): fit no period",
@@ -88,6 +95,8 @@ def run(args) -> int:
 
     outputs = _check_arguments(args)
     cfg = SceneConfig.load(args.scene) if args.scene else None
+    if args.lens_only:
+        return _lens_only(args, cfg)
     found = None
     if args.chequerboard:
         found, c2w, t, extra = _chequerboard_poses(args, outputs)
@@ -138,13 +147,19 @@ def _check_arguments(args) -> dict:
             raise InputError("--chequerboard needs --board COLSxROWS and --square SIDE")
         if args.every < 1:
             raise InputError(f"--every {args.every}: must be a positive whole number")
+        if args.lens_only and args.intrinsics:
+            raise InputError("--lens-only calibrates the lens: leave out --intrinsics")
         stem = out.with_suffix("") if out.suffix == ".json" else out
         outputs["poses"] = stem.with_name(stem.name + ".poses.npz")
         if args.intrinsics is None:
             outputs["intrinsics"] = stem.with_name(stem.name + ".intrinsics.json")
-    elif args.board or args.square or args.intrinsics or args.no_times:
-        raise InputError("--board, --square, --intrinsics and --no-times go with --chequerboard")
-    if args.plot:
+    elif args.board or args.square or args.intrinsics or args.no_times or args.lens_only:
+        raise InputError(
+            "--board, --square, --intrinsics, --no-times and --lens-only go with --chequerboard"
+        )
+    if args.lens_only:
+        outputs = {"out": out}
+    if args.plot and not args.lens_only:
         outputs["plot"] = Path(args.plot)
     for role, path in outputs.items():
         _check_writable(path, "--out" if role == "out" else f"--{role}" if role == "plot" else role)
@@ -277,6 +292,36 @@ def _plot(args, fit, c2w, others: dict, found):
         project(board_outline(board), c2w[i], intr, size),
     )
     return plot_calibration(args.plot, fit, c2w, others, overlay, board_outline(board))
+
+
+def _lens_only(args, cfg) -> int:
+    """--lens-only: board frames -> intrinsics JSON at --out (and into --scene)."""
+    from pathlib import Path
+
+    from ..data.chequerboard import Board, poses_from_chequerboard, progress_enabled
+    from ..data.intrinsics import write_intrinsics
+
+    board = Board.parse(args.board, args.square)
+    found = poses_from_chequerboard(args.chequerboard, board, None, args.every, progress_enabled())
+    det, intr = found.detections, found.intrinsics
+    w, h = det.size
+    print(
+        f"{args.chequerboard}: board {board} found in {det.n_found} of {det.n_frames} frames, "
+        f"{len(det.names)} used; lens rms {found.lens_rms_px:.3f} px: fx {intr.fx:.2f}, "
+        f"fy {intr.fy:.2f}, cx {intr.cx:.2f}, cy {intr.cy:.2f}, k1 {intr.k1:.4f}, k2 {intr.k2:.4f}"
+    )
+    if cfg is not None and (w, h) != (cfg.width, cfg.height):
+        from ..errors import InputError
+
+        raise InputError(
+            f"{args.scene}: the scene is {cfg.width}x{cfg.height}, the board frames {w}x{h}"
+        )
+    extra = {"rms_px": found.lens_rms_px, "views": len(det.names), "source": args.chequerboard}
+    print(f"wrote {write_intrinsics(args.out, intr, w, h, extra)}")
+    if cfg is not None:
+        cfg.intrinsics = intr
+        print(f"wrote {cfg.save(Path(args.scene))}")
+    return 0
 
 
 def _print_fit(fit, others: dict) -> None:
