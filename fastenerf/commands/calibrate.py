@@ -62,7 +62,7 @@ def add_arguments(p) -> None:
         action="store_true",
         help="ignore the frames' times (a plate turned by hand): fit no period",
     )
-    p.add_argument("--out", required=True, help="calibration JSON to write")
+    p.add_argument("--out", required=True, metavar="CALIB.json", help="calibration JSON to write")
     p.add_argument(
         "--scene",
         help="also write the fitted turntable (and a lens calibrated here) into SCENE/scene.json",
@@ -84,7 +84,11 @@ def add_arguments(p) -> None:
     p.add_argument(
         "--compare", action="store_true", help="also run the other solver and print / plot both"
     )
-    p.add_argument("--plot", help="PNG of the fit: cameras, circle, convergence")
+    p.add_argument(
+        "--plot",
+        metavar="PNG",
+        help="picture of the fit: (a board frame,) cameras and circle, convergence",
+    )
 
 
 def run(args) -> int:
