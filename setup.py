@@ -42,6 +42,7 @@ setup(
         "h5py>=3.8",
         "aedat>=2.0",
         "matplotlib>=3.7",
+        "opencv-python-headless>=4.5",
     ],
     extras_require={"dev": ["pytest>=7", "ruff>=0.5"]},
     entry_points={"console_scripts": ["fastenerf=fastenerf.cli:main"]},

@@ -12,6 +12,8 @@ from __future__ import annotations
 HELP = "import an AEDAT4 recording (DV, DAVIS 346/346C) as a native scene folder"
 
 IMPORT_FILE = "import.json"
+FRAMES_DIR = "frames"
+TIMESTAMPS_FILE = "timestamps.txt"  # as fastenerf.data.chequerboard reads it
 
 
 def add_arguments(p) -> None:
@@ -63,8 +65,9 @@ def add_arguments(p) -> None:
     )
     p.add_argument(
         "--intrinsics",
-        metavar="K.txt",
-        help="3x3 K (OpenCV), or the EventNeRF 4x4 / 5x4 file (5th row: k1 k2 0 0)",
+        metavar="FILE",
+        help="3x3 K.txt (OpenCV), the EventNeRF 4x4 / 5x4 file (5th row: k1 k2 0 0), or the "
+        "intrinsics JSON `fastenerf calibrate --chequerboard` writes",
     )
     p.add_argument(
         "--cylinder",
@@ -76,6 +79,13 @@ def add_arguments(p) -> None:
     )
     p.add_argument("--no-cylinder", action="store_true", help="no density clip")
     p.add_argument("--name", help="scene name (default: the recording's file name)")
+    p.add_argument(
+        "--frames",
+        action="store_true",
+        help="also write the APS frames: SCENE/frames/NNNNNN.png and SCENE/frames/"
+        f"{TIMESTAMPS_FILE} (lines 'FILE T_US', DV's clock, middle of each exposure), which "
+        "`fastenerf calibrate --chequerboard SCENE/frames` reads",
+    )
 
 
 def run(args) -> int:
@@ -86,11 +96,14 @@ def run(args) -> int:
     from ..data.formats.aedat import load_aedat4
     from ..data.formats.eventnerf import REAL_BACKGROUND
     from ..data.formats.native import save_scene
+    from ..data.intrinsics import read_intrinsics
     from ..errors import InputError
     from ..io import write_json
 
     crop = None if args.crop is None else (round(args.crop[0]), round(args.crop[1]))
-    rec = load_aedat4(args.recording, t_crop_us=crop)
+    rec = load_aedat4(args.recording, t_crop_us=crop, keep_frames=args.frames)
+    if args.frames and not rec.frames:
+        raise InputError(f"{args.recording}: --frames, but the recording has no APS frames")
     ev = rec.events
     print(
         f"{args.recording}: {len(ev):,} events, {ev.width}x{ev.height}, "
@@ -108,7 +121,7 @@ def run(args) -> int:
             )
             + ")"
         )
-    intr = _read_intrinsics(args.intrinsics, ev.width, ev.height) if args.intrinsics else None
+    intr = read_intrinsics(args.intrinsics, ev.width, ev.height) if args.intrinsics else None
     if intr is None:
         intr = IntrinsicsConfig(
             fx=float(ev.width), fy=float(ev.width), cx=ev.width / 2, cy=ev.height / 2
@@ -180,7 +193,8 @@ def run(args) -> int:
         )
         print(
             "warning: no --turntable or --poses: wrote a placeholder turntable; run "
-            f"`fastenerf calibrate POSES.npz --out CALIB.json --scene {args.out}` next"
+            "`fastenerf calibrate --chequerboard CALIB.aedat4 --board COLSxROWS --square SIDE "
+            f"--out CALIB.json --scene {args.out}` (or with POSES.npz) next"
         )
     if not all(math.isfinite(v) for v in (traj.radius, traj.period_us)):
         raise InputError(f"{args.turntable}: turntable parameters are not finite")
@@ -214,8 +228,11 @@ def run(args) -> int:
             "events": len(ev),
             "trajectory_from": args.turntable or args.poses or None,
             "intrinsics_from": args.intrinsics,
+            "frames": len(rec.frames) if args.frames else None,
         },
     )
+    if args.frames:
+        print(f"wrote {_write_frames(out / FRAMES_DIR, rec, args.recording)}")
     save_scene(out, cfg, ev, poses=poses)
     n_pos = int((ev.p > 0).sum())
     print(
@@ -226,53 +243,23 @@ def run(args) -> int:
     return 0
 
 
-def _read_intrinsics(path: str, width: int, height: int):
-    """IntrinsicsConfig from K.txt (3x3 / 4x4 / 5x4) or a JSON object of IntrinsicsConfig."""
-    import json
-    from pathlib import Path
+def _write_frames(folder, rec, source: str):
+    """The recording's APS frames as PNGs (8- or 16-bit gray, or RGB(A)) with a timestamps
+    file, replacing `folder` as a whole (atomically)."""
+    import imageio.v3 as iio
 
-    import numpy as np
+    from ..io import atomic_dir
 
-    from ..config import IntrinsicsConfig, from_dict
-    from ..errors import InputError
-
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: intrinsics file not found")
-    if p.suffix == ".json":
-        try:
-            d = json.loads(p.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise InputError(f"{p}: not valid JSON ({e})") from None
-        c = from_dict(IntrinsicsConfig, d, str(p))
-    else:
-        try:
-            vals = np.array([float(v) for v in p.read_text().split()], dtype=np.float64)
-        except (ValueError, UnicodeDecodeError) as e:
-            raise InputError(f"{p}: not a matrix of numbers ({e})") from None
-        if len(vals) not in (9, 16, 20) or not np.all(np.isfinite(vals)):
-            raise InputError(
-                f"{p}: expected a 3x3, 4x4 or 5x4 matrix of finite numbers, found "
-                f"{len(vals)} numbers"
-            )
-        cols = 3 if len(vals) == 9 else 4
-        m = vals.reshape(-1, cols)
-        if abs(m[0, 1]) > 1e-9 or abs(m[1, 0]) > 1e-9 or np.abs(m[2, :3] - [0, 0, 1]).max() > 1e-9:
-            raise InputError(f"{p}: K must be [fx 0 cx; 0 fy cy; 0 0 1] (no skew)")
-        k1, k2 = (m[4, 0], m[4, 1]) if len(m) == 5 else (0.0, 0.0)
-        c = IntrinsicsConfig(
-            fx=float(m[0, 0]),
-            fy=float(m[1, 1]),
-            cx=float(m[0, 2]),
-            cy=float(m[1, 2]),
-            k1=float(k1),
-            k2=float(k2),
-            distortion_model="eventnerf" if len(m) == 5 else "opencv",
-        )
-    if c.fx <= 0 or c.fy <= 0:
-        raise InputError(f"{p}: focal lengths must be positive (fx={c.fx}, fy={c.fy})")
-    if not (0 <= c.cx <= width and 0 <= c.cy <= height):
-        raise InputError(
-            f"{p}: principal point ({c.cx}, {c.cy}) lies outside the {width}x{height} sensor"
-        )
-    return c
+    lines = [
+        f"# APS frames of {source}: FILE T_US (DV clock, µs since the epoch, middle of the "
+        "exposure)",
+        f"# the scene's clock is T_US - {rec.t_origin_us} (import.json t_origin_us)",
+    ]
+    with atomic_dir(folder) as tmp:
+        for i, fr in enumerate(rec.frames):
+            name = f"{i:06d}.png"
+            iio.imwrite(tmp / name, fr.rgb())
+            lines.append(f"{name} {fr.t_us}")
+        (tmp / TIMESTAMPS_FILE).write_text("\n".join(lines) + "\n")
+    print(f"{len(rec.frames)} APS frames ({', '.join(rec.frame_formats)})")
+    return folder
