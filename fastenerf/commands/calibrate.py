@@ -30,6 +30,11 @@ def add_arguments(p) -> None:
         "--compare", action="store_true", help="also run the other solver and print / plot both"
     )
     p.add_argument("--plot", help="PNG of the fit: cameras, circle, convergence")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out / --plot even if they are not a calibration / an image",
+    )
 
 
 def run(args) -> int:
@@ -44,7 +49,15 @@ def run(args) -> int:
         plot_calibration,
         write_calibration,
     )
+    from ..outputs import CALIBRATION, IMAGE, SCENE_UPDATE, claim_output
 
+    claim_output(args.out, CALIBRATION, force=args.force)
+    if args.plot:
+        claim_output(args.plot, IMAGE, force=args.force, flag="--plot")
+    if args.scene:  # the scene to update: valid and writable before the fit
+        SceneConfig.load(args.scene)
+        scene = Path(args.scene).resolve()
+        claim_output(scene.parent if scene.is_file() else scene, SCENE_UPDATE, flag="--scene")
     c2w, t = load_calibration_poses(args.poses)
     fit = fit_turntable(c2w, t, method=args.method, source=args.poses)
     others = {}
