@@ -64,12 +64,14 @@ def claim_output(
     path: str | os.PathLike,
     kind: OutputKind,
     *,
-    force: bool = False,
+    force: bool | None = False,
     flag: str = "--out",
 ) -> Path:
     """Check that `kind` may be written at `path` (see the module docstring); return the path.
 
-    flag: the option that named the path, for the messages ("--out", "--png", ...).
+    force: the command's --force (None: the command has no --force, e.g. `train`, whose run
+    folders are continued with --resume, never replaced); flag: the option that named the
+    path, for the messages ("--out", "--png", ...).
     Raises `InputError` (one line, naming the path and what to do) when it may not.
     """
     p = Path(path)
@@ -83,23 +85,17 @@ def claim_output(
     return p
 
 
-def claim_outputs(*claims: tuple[str | os.PathLike | None, OutputKind, str], force=False):
-    """`claim_output` for each (path, kind, flag) whose path is not None."""
-    return [claim_output(p, k, force=force, flag=f) for p, k, f in claims if p is not None]
-
-
-def _check_existing(p: Path, kind: OutputKind, force: bool, flag: str) -> None:
+def _check_existing(p: Path, kind: OutputKind, force: bool | None, flag: str) -> None:
+    a = "an" if kind.name[0] in "aeiou" else "a"
     if kind.is_dir and not p.is_dir():
-        raise InputError(f"{flag} {p}: is a file, but a {kind.name} is a folder; choose another")
+        raise InputError(f"{flag} {p}: is a file, but {a} {kind.name} is a folder; choose another")
     if not kind.is_dir and p.is_dir():
-        raise InputError(f"{flag} {p}: is a folder, but a {kind.name} is a file; choose another")
+        raise InputError(f"{flag} {p}: is a folder, but {a} {kind.name} is a file; choose another")
     if force or kind.recognise(p):
         return
     what = "a folder" if kind.is_dir else "a file"
-    raise InputError(
-        f"{flag} {p}: exists and is {what} that is not a {kind.name}; choose another "
-        f"path or pass --force to replace it"
-    )
+    fix = "choose another path" + ("" if force is None else " or pass --force to replace it")
+    raise InputError(f"{flag} {p}: exists and is {what} that is not {a} {kind.name}; {fix}")
 
 
 def _check_writable(p: Path, kind: OutputKind, flag: str) -> None:

@@ -57,7 +57,9 @@ def run(args) -> int:
     if args.scene:  # the scene to update: valid and writable before the fit
         SceneConfig.load(args.scene)
         scene = Path(args.scene).resolve()
-        claim_output(scene.parent if scene.is_file() else scene, SCENE_UPDATE, flag="--scene")
+        claim_output(
+            scene.parent if scene.is_file() else scene, SCENE_UPDATE, force=None, flag="--scene"
+        )
     c2w, t = load_calibration_poses(args.poses)
     fit = fit_turntable(c2w, t, method=args.method, source=args.poses)
     others = {}

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     from ..outputs import RUN, claim_output
     from ..train import Trainer
 
-    claim_output(args.out, RUN)
+    claim_output(args.out, RUN, force=None)
     cfg = build_config(args)
     scene = load_scene_folder(args.scene)
     trainer = Trainer(scene, cfg, args.out, resume=args.resume)

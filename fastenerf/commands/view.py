@@ -163,7 +163,7 @@ def check_view_outputs(args) -> None:
         if path:
             claim_output(path, IMAGE, force=args.force, flag=flag)
     if args.train and args.out:
-        claim_output(args.out, RUN, flag="--out")
+        claim_output(args.out, RUN, force=None)
 
 
 def _snapshot(args, src, settings) -> int:
