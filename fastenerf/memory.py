@@ -79,7 +79,7 @@ def memory_limit(device: str = "cpu") -> tuple[int | None, str]:
 def check_memory(nbytes: float, what: str, device: str = "cpu") -> None:
     """Raise `InputError` when `nbytes` (an estimate) exceeds the memory limit on `device`.
 
-    what: the request, as the user gave it ("synth: 2000 frames at 4096x4096").
+    what: the request, as the user gave it ("2000 frames at 4096x4096").
     """
     limit, desc = memory_limit(device)
     if limit is not None and nbytes > limit:
@@ -109,12 +109,12 @@ def grid_bytes(nx: int, ny: int, nz: int) -> int:
     return nx * ny * nz * (4 + 8 + 2)
 
 
-def image_bytes(width: int, height: int, views: int = 1) -> int:
-    """Rendering `views` images at width x height: per view rgb, corrected and ground truth
-    (float32 RGB), plus one view's rays (origin, direction) and outputs (rgb, depth,
-    opacity) as float32."""
+def image_bytes(width: int, height: int, views: int = 1, kept_floats: int = 9) -> int:
+    """Rendering `views` images at width x height: `kept_floats` float32 per pixel kept for
+    every view (eval: prediction, corrected and ground truth RGB, 9; render: the frame for
+    the video, 3), plus one view's rays (origin, direction) and outputs (rgb, depth, opacity)."""
     px = width * height
-    return views * px * 3 * 4 * 3 + px * (6 + 5) * 4
+    return views * px * kept_floats * 4 + px * (6 + 5) * 4
 
 
 def views_bytes(n_views: int) -> int:

@@ -88,13 +88,18 @@ def claim_output(
 def _check_existing(p: Path, kind: OutputKind, force: bool | None, flag: str) -> None:
     a = "an" if kind.name[0] in "aeiou" else "a"
     if kind.is_dir and not p.is_dir():
-        raise InputError(f"{flag} {p}: is a file, but {a} {kind.name} is a folder; choose another")
+        raise InputError(
+            f"{flag} {p}: is a file, but {a} {kind.name} is a folder; choose another path"
+        )
     if not kind.is_dir and p.is_dir():
-        raise InputError(f"{flag} {p}: is a folder, but {a} {kind.name} is a file; choose another")
+        raise InputError(
+            f"{flag} {p}: is a folder, but {a} {kind.name} is a file; choose another path"
+        )
     if force or kind.recognise(p):
         return
     what = "a folder" if kind.is_dir else "a file"
-    fix = "choose another path" + ("" if force is None else " or pass --force to replace it")
+    verb = "replace it" if kind.replaced_whole else "write into it"
+    fix = "choose another path" + ("" if force is None else f" or pass --force to {verb}")
     raise InputError(f"{flag} {p}: exists and is {what} that is not {a} {kind.name}; {fix}")
 
 

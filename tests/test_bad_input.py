@@ -272,7 +272,7 @@ OUTPUT_ROWS = [
 MEMORY_ROWS = [
     R("synth-2000-frames-4096", "memory: synth frames",
       "synth --scene blocks --frames 2000 --size 4096x4096 --out {tmp}/big", None,
-      2, "synth: 2000 frames at 4096x4096 needs at least", env=MEM),
+      2, "2000 frames at 4096x4096 needs at least", env=MEM),
     R("scene-n-views-1e12", "memory: n_views",
       "info {scene}", edit_scene_json(n_views=10**12),
       2, "n_views 1,000,000,000,000 needs at least"),

@@ -73,5 +73,5 @@ def check_render_memory(run_dir, scale: float, views: int, command: str) -> None
         isinstance(sc.get(k), int | float) for k in ("width", "height")
     ):
         w, h = round(sc["width"] * scale), round(sc["height"] * scale)
-        what = f"{command} --scale {scale:g} ({views} x {w}x{h})"
-        check_memory(image_bytes(w, h, views), what)
+        what = f"{command} --scale {scale:g} ({views:,} views at {w}x{h})"
+        check_memory(image_bytes(w, h, views, 9 if command == "eval" else 3), what)

@@ -58,7 +58,8 @@ def run(args) -> int:
     field, scene, _ = load_run(args.run, device=args.device)
     cfg = getattr(scene, "config", scene)  # a loaded Scene or the SceneConfig saved in the run
     shape = grid_shape(cfg.aabb, args.resolution)[0]
-    check_memory(grid_bytes(*shape), f"mesh --resolution {args.resolution} ({shape} grid)")
+    grid = "x".join(map(str, shape))
+    check_memory(grid_bytes(*shape), f"mesh --resolution {args.resolution} ({grid} grid)")
     mesh = field_mesh(
         field,
         aabb=cfg.aabb,

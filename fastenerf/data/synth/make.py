@@ -179,7 +179,7 @@ def make_scene_result(
     if supersample < 1 or chunk < 1:
         raise InputError(f"supersample and chunk must be at least 1 (got {supersample}, {chunk})")
     est = synth_bytes(width, height, frames, test_every, chunk, supersample)
-    check_memory(est, f"synth: {frames} frames at {width}x{height}")
+    check_memory(est, f"{frames} frames at {width}x{height}")
     sim = sim or SimulatorConfig(pos_threshold=threshold, bayer=bayer, noise=noise, seed=seed)
     sim.validate()
     scene = resolve_scene(name_or_mesh)
