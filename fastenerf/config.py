@@ -126,6 +126,9 @@ class SceneConfig:
         )
         _check(self.t_end_us > self.t_start_us, where, "t_end_us", "must be after t_start_us")
         _check(self.n_views >= 2, where, "n_views", "must be at least 2")
+        from .memory import check_memory, views_bytes  # the window grid holds n_views poses
+
+        check_memory(views_bytes(self.n_views), f"{where}: n_views {self.n_views:,}")
         _check(
             len(self.aabb) == 6 and all(math.isfinite(a) for a in self.aabb),
             where,

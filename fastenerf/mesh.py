@@ -52,7 +52,7 @@ def density_grid(
     density_fn: world points (N, 3) float32 -> σ (N,); called with at most `chunk` points.
     Points outside `cylinder` are not evaluated (σ = 0 there).
     """
-    from tqdm import tqdm
+    from .progress import progress_bar
 
     (nx, ny, nz), spacing = grid_shape(aabb, resolution)
     lo = torch.tensor(aabb[:3], dtype=torch.float32, device=device)
@@ -60,8 +60,8 @@ def density_grid(
     out = np.empty(total, np.float32)
     dims = torch.tensor([ny * nz, nz, 1], device=device)
     sizes = torch.tensor([nx, ny, nz], device=device)
-    for s in tqdm(
-        range(0, total, chunk), desc="density grid", unit="chunk", disable=not progress, leave=False
+    for s in progress_bar(
+        range(0, total, chunk), desc="density grid", unit="chunk", enabled=progress
     ):
         idx = torch.arange(s, min(s + chunk, total), device=device)
         ijk = (idx[:, None] // dims) % sizes  # C order: x slowest, z fastest
@@ -98,7 +98,7 @@ def vertex_colors(
 ) -> np.ndarray:
     """Display-space colour (V, 3) in [0, 1] per vertex: color_fn(x, d) averaged in linear
     intensity over `n_dirs` rays d that hit the vertex from outside (within 60° of −normal)."""
-    from tqdm import tqdm
+    from .progress import progress_bar
 
     local = hemisphere_dirs(n_dirs)  # around +z; rotate +z onto -normal per vertex
     nrm = -normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
@@ -108,12 +108,8 @@ def vertex_colors(
     t2 = np.cross(nrm, t1)
     acc = np.zeros((len(vertices), 3), np.float64)
     step = max(1, chunk // n_dirs)
-    for s in tqdm(
-        range(0, len(vertices), step),
-        desc="vertex colours",
-        unit="chunk",
-        disable=not progress,
-        leave=False,
+    for s in progress_bar(
+        range(0, len(vertices), step), desc="vertex colours", unit="chunk", enabled=progress
     ):
         sl = slice(s, s + step)
         d = (

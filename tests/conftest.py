@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -70,4 +74,46 @@ def tiny_scene(tmp_path_factory):
 
     return make_scene(
         DEFAULT_SCENE, tmp_path_factory.mktemp("tiny") / "scene", width=64, height=48, frames=100
+    )
+
+
+AEDAT_ENV = "FASTENERF_AEDAT_DIR"
+AEDAT_PROBE = "aedat__test_data.aedat4"
+
+
+def aedat_dirs() -> list[Path]:
+    """Where the real AEDAT4 recordings (third-party, not in git) may be, in order:
+    $FASTENERF_AEDAT_DIR; the clone's ../shared/external-aedat; and, for a git worktree or
+    a clone made from another checkout, shared/external-aedat in or beside the main
+    checkout (the git common dir's parent)."""
+    if os.environ.get(AEDAT_ENV):
+        return [Path(os.environ[AEDAT_ENV])]
+    repo = Path(__file__).resolve().parents[1]
+    dirs = [repo.parent / "shared" / "external-aedat"]
+    try:
+        common = subprocess.run(
+            ["git", "rev-parse", "--git-common-dir"],
+            cwd=repo,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        common = ""
+    if common:
+        main_checkout = (repo / common).resolve().parent  # common: relative to repo, or absolute
+        dirs += [d / "shared" / "external-aedat" for d in (main_checkout, main_checkout.parent)]
+    return list(dict.fromkeys(dirs))
+
+
+def find_aedat_dir() -> Path | None:
+    """The first of `aedat_dirs()` holding the recordings, or None."""
+    return next((d for d in aedat_dirs() if (d / AEDAT_PROBE).is_file()), None)
+
+
+def aedat_skip_reason() -> str:
+    looked = ", ".join(str(d) for d in aedat_dirs())
+    return (
+        f"real AEDAT4 recordings not found (looked in {looked}); set {AEDAT_ENV}=DIR to the "
+        f"folder holding {AEDAT_PROBE} and the other recordings (shared/external-aedat)"
     )

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import aedat_skip_reason, find_aedat_dir
 
 from fastenerf.cli import main as cli
 from fastenerf.config import SceneConfig, TrajectoryConfig
@@ -18,16 +17,9 @@ from fastenerf.data.formats.native import load_scene
 from fastenerf.errors import InputError
 from fastenerf.io import savez
 
-DATA = Path(
-    os.environ.get(
-        "FASTENERF_AEDAT_DIR", Path(__file__).resolve().parents[2] / "shared" / "external-aedat"
-    )
-)
-if not (DATA / "aedat__test_data.aedat4").is_file():
-    pytest.skip(
-        f"real AEDAT4 recordings not found in {DATA} (set FASTENERF_AEDAT_DIR)",
-        allow_module_level=True,
-    )
+DATA = find_aedat_dir()
+if DATA is None:
+    pytest.skip(aedat_skip_reason(), allow_module_level=True)
 
 TEST_DATA = DATA / "aedat__test_data.aedat4"
 

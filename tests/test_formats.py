@@ -272,11 +272,18 @@ def test_their_folder_problems(tmp_path, rng):
     bad.write_text("300 0 173 0\n0 300 130 0\n0 0 1 0\n0 0 0 1\n")
     one_line_error(load_eventnerf, root, match="r_00004.txt: intrinsics differ from r_00000.txt")
     bad.unlink()
-    one_line_error(load_eventnerf, root, match="10 pose files but 9 intrinsics files")
+    one_line_error(load_eventnerf, root, match="pose/r_00004.txt has no intrinsics/r_00004.*")
     shutil.copy(root / "train" / "intrinsics" / "r_00000.txt", bad)
     (root / "train" / "rgb" / "r_00002.png").unlink()
-    one_line_error(load_eventnerf, root, match="10 pose files but 9 rgb images")
+    one_line_error(load_eventnerf, root, match="pose/r_00002.txt has no rgb/r_00002.*")
+    shutil.copy(root / "train" / "rgb" / "r_00000.png", root / "train" / "rgb" / "r_00002.jpg")
+    load_eventnerf(root)  # matched by stem, whatever the image format
     shutil.copy(root / "train" / "rgb" / "r_00000.png", root / "train" / "rgb" / "r_00002.png")
+    one_line_error(load_eventnerf, root, match="two files for view r_00002")
+    (root / "train" / "rgb" / "r_00002.jpg").unlink()
+    (root / "train" / "pose" / "r_00007.txt").unlink()  # only the pose: the others are extra
+    one_line_error(load_eventnerf, root, match="intrinsics/r_00007.txt has no pose/r_00007.txt")
+    shutil.copy(root / "train" / "pose" / "r_00000.txt", root / "train" / "pose" / "r_00007.txt")
     pose = root / "train" / "pose" / "r_00001.txt"
     pose.write_text("1 0 0 0\n0 1 0 0\n0 0 -1 0\n0 0 0 1\n")  # a reflection
     one_line_error(load_eventnerf, root, match="r_00001.txt: not a rigid camera-to-world")
@@ -289,6 +296,39 @@ def test_their_folder_problems(tmp_path, rng):
     np.savez(root / "train" / "events" / "out.npz", x=[0, 400], y=[0, 0], t=[0, 9], p=[1, 1])
     one_line_error(load_eventnerf, root, match="out.npz: x=400 at event 1 is outside")
     one_line_error(load_eventnerf, tmp_path, match="no 'train' folder")
+
+
+def test_their_folder_with_a_view_removed_keeps_the_view_times(tmp_path, rng):
+    """A whole view deleted (pose, intrinsics, rgb): the others keep their times by number,
+    the gap is named in a warning, and the time unit is still the frame index."""
+    m, n = 20, 3000
+    t = np.sort(rng.integers(0, m, n))
+    t[-1] = m - 1
+    x, y, p = rng.integers(0, 346, n), rng.integers(0, 260, n), rng.choice([-1, 1], n)
+    c2w = write_their_folder(tmp_path / "s", rng, m, t, x, y, p)
+    for sub, ext in (("pose", "txt"), ("intrinsics", "txt"), ("rgb", "png")):
+        (tmp_path / "s" / "train" / sub / f"r_00007.{ext}").unlink()
+    with pytest.warns(UserWarning, match=r"1 view\(s\) missing .*: r_00007; the other views"):
+        scene = load_eventnerf(tmp_path / "s", test_split=None)
+    keep = np.delete(np.arange(m), 7)
+    np.testing.assert_array_equal(scene.poses[0], keep * 1000)  # not respaced over 19 views
+    np.testing.assert_allclose(scene.poses[1], c2w[keep], atol=1e-12)
+    assert scene.config.n_views == m and scene.config.kind == "synthetic"
+
+
+def test_their_folder_with_misordered_view_numbers(tmp_path, rng):
+    m, n = 6, 500
+    t = np.sort(rng.integers(0, m, n))
+    t[-1] = m - 1
+    x, y, p = rng.integers(0, 346, n), rng.integers(0, 260, n), rng.choice([-1, 1], n)
+    write_their_folder(tmp_path / "s", rng, m, t, x, y, p)
+    for sub, ext in (("pose", "txt"), ("intrinsics", "txt"), ("rgb", "png")):
+        src = tmp_path / "s" / "train" / sub / f"r_00005.{ext}"
+        src.rename(src.with_name(f"r_9.{ext}"))
+        src = tmp_path / "s" / "train" / sub / f"r_00004.{ext}"
+        src.rename(src.with_name(f"r_10.{ext}"))  # name order: ..., r_00003, r_10, r_9 (10 > 9)
+    msg = "not in file-name order (r_10.txt sorts before r_9.txt)"
+    one_line_error(load_eventnerf, tmp_path / "s", match=msg)
 
 
 def make_scene(

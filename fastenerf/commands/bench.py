@@ -23,6 +23,12 @@ BENCHMARKS = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="let the benchmark write into an --out that is not a benchmark folder "
+        "(give it before NAME)",
+    )
     p.add_argument("benchmark", choices=sorted(BENCHMARKS), help="which benchmark")
     p.add_argument(
         "bench_args",
@@ -66,7 +72,23 @@ def import_benchmark(name: str):
         ) from None
 
 
+def bench_out(argv: list[str]) -> str | None:
+    """The --out a benchmark's arguments name (None: the benchmark's default)."""
+    for i, a in enumerate(argv):
+        if a == "--out" and i + 1 < len(argv):
+            return argv[i + 1]
+        if a.startswith("--out="):
+            return a.split("=", 1)[1]
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
+    from ..outputs import bench_kind, claim_output
+
+    out = bench_out(list(args.bench_args))
+    if out is not None and "-h" not in args.bench_args and "--help" not in args.bench_args:
+        name = BENCHMARKS[args.benchmark].split(".")[-1]
+        claim_output(out, bench_kind(name), force=args.force)
     mod = import_benchmark(args.benchmark)
     if not hasattr(mod, "main"):
         from ..errors import InputError

@@ -89,6 +89,11 @@ def add_arguments(p) -> None:
         metavar="PNG",
         help="picture of the fit: (a board frame,) cameras and circle, convergence",
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out / --plot even if they are not a calibration / an image",
+    )
 
 
 def run(args) -> int:
@@ -165,8 +170,21 @@ def _check_arguments(args) -> dict:
         outputs = {"out": out}
     if args.plot and not args.lens_only:
         outputs["plot"] = Path(args.plot)
+    from ..config import SceneConfig
+    from ..outputs import CALIBRATION, IMAGE, SCENE_UPDATE, claim_output
+
     for role, path in outputs.items():
-        _check_writable(path, "--out" if role == "out" else f"--{role}" if role == "plot" else role)
+        if role == "out":
+            claim_output(path, CALIBRATION, force=args.force)
+        elif role == "plot":
+            claim_output(path, IMAGE, force=args.force, flag="--plot")
+        else:
+            _check_writable(path, role)
+    if args.scene:  # the scene to update: valid and writable before the fit
+        SceneConfig.load(args.scene)
+        scene = Path(args.scene).resolve()
+        folder = scene.parent if scene.is_file() else scene
+        claim_output(folder, SCENE_UPDATE, force=None, flag="--scene")
     return outputs
 
 

@@ -75,7 +75,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="training budget (default 1 on a GPU, 5 on a CPU)",
     )
-    p.add_argument("--scene", default=None, help="built-in scene (default: the default one)")
+    p.add_argument(
+        "--scene",
+        default=None,
+        metavar="NAME",
+        help="built-in scene to synthesise (default blocks; `fastenerf synth --list` names "
+        "them) or a mesh file",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="replace --out even if it is not a demo folder"
+    )
     p.add_argument("--device", default="auto", help="auto (default), cpu or cuda")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -98,10 +107,12 @@ def run(args: argparse.Namespace) -> int:
     from ..data.synth import DEFAULT_SCENE, make_scene
     from ..errors import InputError
     from ..evaluate import evaluate_run, format_metrics
+    from ..outputs import DEMO, claim_output
     from ..run import resolve_device
     from ..train import Trainer
     from .render import render_path
 
+    claim_output(args.out, DEMO, force=args.force)
     t_start = time.perf_counter()
     device = resolve_device(args.device)
     gpu = device.type == "cuda"

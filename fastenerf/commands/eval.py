@@ -28,6 +28,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="folder for the corrected images and sheet (default RUN_DIR/eval)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--force", action="store_true", help="write into --out even if it is not an eval folder"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -36,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.scale <= 0 or (args.views is not None and args.views < 1):
         raise InputError("--scale must be positive and --views at least 1")
+    check_eval_outputs(args)
     m = evaluate_run(
         args.run_dir,
         max_views=args.views,
@@ -46,3 +50,28 @@ def run(args: argparse.Namespace) -> int:
     print(format_metrics(m))
     print(f"wrote {args.run_dir}/metrics.json, images in {m['images']}/, sheet {m['sheet']}")
     return 0
+
+
+def check_eval_outputs(args: argparse.Namespace) -> None:
+    """--out may be written and the renders fit in memory (before the run is loaded)."""
+    from pathlib import Path
+
+    from ..outputs import EVAL, claim_output
+
+    out = args.out if args.out is not None else Path(args.run_dir) / "eval"
+    claim_output(out, EVAL, force=args.force)
+    check_render_memory(args.run_dir, args.scale, args.views or 1, "eval")
+
+
+def check_render_memory(run_dir, scale: float, views: int, command: str) -> None:
+    """Refuse (`check_memory`) `views` renders at `scale` x the run's sensor that cannot fit."""
+    from ..memory import check_memory, image_bytes
+    from ..train import read_run_config
+
+    sc = read_run_config(run_dir).get("scene")
+    if isinstance(sc, dict) and all(
+        isinstance(sc.get(k), int | float) for k in ("width", "height")
+    ):
+        w, h = round(sc["width"] * scale), round(sc["height"] * scale)
+        what = f"{command} --scale {scale:g} ({views:,} views at {w}x{h})"
+        check_memory(image_bytes(w, h, views, 9 if command == "eval" else 3), what)

@@ -18,7 +18,12 @@ TIMESTAMPS_FILE = "timestamps.txt"  # as fastenerf.data.chequerboard reads it
 
 def add_arguments(p) -> None:
     p.add_argument("recording", help="AEDAT4 file written by DV")
-    p.add_argument("--out", required=True, help="scene folder to write")
+    p.add_argument(
+        "--out", required=True, help="scene folder to write (an existing scene is replaced whole)"
+    )
+    p.add_argument(
+        "--force", action="store_true", help="replace --out even if it is not a scene folder"
+    )
     traj = p.add_mutually_exclusive_group()
     traj.add_argument(
         "--turntable", metavar="CALIB.json", help="turntable model from `fastenerf calibrate`"
@@ -92,13 +97,17 @@ def run(args) -> int:
     import math
     from pathlib import Path
 
+    from ..outputs import SCENE, claim_output
+
+    claim_output(args.out, SCENE, force=args.force)
+
     from ..config import CylinderConfig, IntrinsicsConfig, SceneConfig, TrajectoryConfig
     from ..data.formats.aedat import load_aedat4
     from ..data.formats.eventnerf import REAL_BACKGROUND
     from ..data.formats.native import save_scene
     from ..data.intrinsics import read_intrinsics
     from ..errors import InputError
-    from ..io import write_json
+    from ..io import atomic_dir, write_json
 
     crop = None if args.crop is None else (round(args.crop[0]), round(args.crop[1]))
     rec = load_aedat4(args.recording, t_crop_us=crop, keep_frames=args.frames)
@@ -217,23 +226,25 @@ def run(args) -> int:
         kind="real",
     ).validate(f"{args.out}/scene.json")
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(
-        out / IMPORT_FILE,
-        {
-            "source": str(Path(args.recording).resolve()),
-            "t_origin_us": rec.t_origin_us,
-            "crop_us": list(crop) if crop else None,
-            "frame_formats": list(rec.frame_formats),
-            "events": len(ev),
-            "trajectory_from": args.turntable or args.poses or None,
-            "intrinsics_from": args.intrinsics,
-            "frames": len(rec.frames) if args.frames else None,
-        },
-    )
+    with atomic_dir(out) as tmp:  # the scene whole: nothing of an older one survives
+        write_json(
+            tmp / IMPORT_FILE,
+            {
+                "source": str(Path(args.recording).resolve()),
+                "t_origin_us": rec.t_origin_us,
+                "crop_us": list(crop) if crop else None,
+                "frame_formats": list(rec.frame_formats),
+                "events": len(ev),
+                "trajectory_from": args.turntable or args.poses or None,
+                "intrinsics_from": args.intrinsics,
+                "frames": len(rec.frames) if args.frames else None,
+            },
+        )
+        if args.frames:
+            _write_frames(tmp / FRAMES_DIR, rec, args.recording)
+        save_scene(tmp, cfg, ev, poses=poses)
     if args.frames:
-        print(f"wrote {_write_frames(out / FRAMES_DIR, rec, args.recording)}")
-    save_scene(out, cfg, ev, poses=poses)
+        print(f"wrote {out / FRAMES_DIR}")
     n_pos = int((ev.p > 0).sum())
     print(
         f"{n_pos:,} positive / {len(ev) - n_pos:,} negative events, time origin "

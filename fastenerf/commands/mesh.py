@@ -31,6 +31,9 @@ def add_arguments(p) -> None:
     p.add_argument("--png", help="also write a shaded preview image")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     p.add_argument("--chunk", type=int, default=1 << 18, help="points per field call")
+    p.add_argument(
+        "--force", action="store_true", help="replace --out / --png even if not a mesh / image"
+    )
 
 
 def run(args) -> int:
@@ -45,8 +48,18 @@ def run(args) -> int:
         raise InputError(f"{out}: unknown mesh format (use .ply, .glb or .obj)")
     if args.resolution < 2 or args.dirs < 1 or args.chunk < 1:
         raise InputError("--resolution must be >= 2, --dirs and --chunk >= 1")
+    from ..memory import check_memory, grid_bytes
+    from ..mesh import grid_shape
+    from ..outputs import IMAGE, MESH, claim_output
+
+    claim_output(out, MESH, force=args.force)
+    if args.png:
+        claim_output(args.png, IMAGE, force=args.force, flag="--png")
     field, scene, _ = load_run(args.run, device=args.device)
     cfg = getattr(scene, "config", scene)  # a loaded Scene or the SceneConfig saved in the run
+    shape = grid_shape(cfg.aabb, args.resolution)[0]
+    grid = "x".join(map(str, shape))
+    check_memory(grid_bytes(*shape), f"mesh --resolution {args.resolution} ({grid} grid)")
     mesh = field_mesh(
         field,
         aabb=cfg.aabb,

@@ -35,6 +35,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--fps", type=float, default=24.0, help="video frame rate (default 24)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--force", action="store_true", help="write into --out even if it is not a render folder"
+    )
 
 
 def orbit_poses(scene_cfg, n: int, root=None, poses=None) -> np.ndarray:
@@ -133,11 +136,10 @@ def render_path(
 
     Writes out/rgb/NNNN.png, out/depth/NNNN.png and out/video.mp4 (or .gif).
     """
-    from tqdm import tqdm
-
     from ..data.formats.native import Scene
     from ..data.rig import Intrinsics
     from ..io import write_image
+    from ..progress import progress_bar
     from ..render import render_image
     from ..run import load_run, scene_background
 
@@ -151,7 +153,7 @@ def render_path(
     out = Path(out)
     bg = scene_background(sc)
     frames = []
-    for i, pose in enumerate(tqdm(c2w, desc="render", unit="frame", disable=not progress)):
+    for i, pose in enumerate(progress_bar(c2w, desc="render", unit="frame", enabled=progress)):
         img = render_image(field, pose, intr, near=sc.near, background=bg, chunk=cfg.chunk)
         rgb = img["rgb"].clamp(0, 1).cpu().numpy()
         write_image(out / "rgb" / f"{i:04d}.png", rgb)
@@ -178,7 +180,12 @@ def run(args: argparse.Namespace) -> int:
     n = 60 if args.orbit is None else args.orbit
     if n < 1:
         raise InputError("--orbit needs at least 1 frame")
+    from ..outputs import RENDER, claim_output
+    from .eval import check_render_memory
+
+    claim_output(args.out, RENDER, force=args.force)
     c2w = read_path(args.path) if args.path else None
+    check_render_memory(args.run_dir, args.scale, n if c2w is None else len(c2w), "render")
     res = render_path(
         args.run_dir,
         args.out,

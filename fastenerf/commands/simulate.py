@@ -17,6 +17,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--out", metavar="E.npz", required=True, help="events file to write")
     p.add_argument(
+        "--force", action="store_true", help="replace --out even if it is not an events file"
+    )
+    p.add_argument(
         "--threshold",
         type=float,
         default=0.25,
@@ -62,12 +65,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..outputs import EVENTS, claim_output
 
+    claim_output(args.out, EVENTS, force=args.force)
     import numpy as np
 
     from ..data.synth.simulator import EventSimulator, SimulatorConfig
     from ..errors import InputError
     from ..io import read_npz, savez
+    from ..progress import progress_bar
 
     cfg = SimulatorConfig(
         pos_threshold=args.threshold,
@@ -91,10 +97,8 @@ def run(args: argparse.Namespace) -> int:
     t_us = np.asarray(t, dtype=np.float64) * 1e6
     h, w = frames.shape[1:3]
     sim = EventSimulator(w, h, cfg)
-    from tqdm import tqdm
-
     chunk = 32
-    with tqdm(total=len(frames), desc="simulate", unit="frame", leave=False) as bar:
+    with progress_bar(total=len(frames), desc="simulate", unit="frame") as bar:
         for i in range(0, len(frames), chunk):
             sim.add_frames(frames[i : i + chunk], t_us[i : i + chunk])
             bar.update(min(chunk, len(frames) - i))

@@ -12,7 +12,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("--scene", metavar="NAME", help="built-in scene (see --list)")
     src.add_argument("--mesh", metavar="PATH", help="your mesh (OBJ, GLB, PLY, ...), y-up")
     src.add_argument("--list", action="store_true", help="print the built-in scene names")
-    p.add_argument("--out", metavar="DIR", help="scene folder to write (replaced atomically)")
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="scene folder to write (an existing scene folder is replaced atomically)",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="replace --out even if it is not a scene folder"
+    )
     p.add_argument(
         "--frames",
         type=int,
@@ -85,11 +92,14 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("give --scene NAME or --mesh PATH (or --list)")
     if not args.out:
         raise InputError("--out DIR is required")
+    from ..outputs import SCENE, claim_output
+
+    claim_output(args.out, SCENE, force=args.force)
+    w, h = parse_size(args.size)
     from ..data.synth import load_mesh
     from ..data.synth.make import make_scene_result, resolve_scene, summary
 
     source = resolve_scene(args.scene) if args.scene else load_mesh(args.mesh)
-    w, h = parse_size(args.size)
     res = make_scene_result(
         source,
         args.out,

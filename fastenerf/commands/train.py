@@ -96,8 +96,10 @@ def build_config(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     from ..data.formats import load_scene_folder
     from ..errors import InputError
+    from ..outputs import RUN, claim_output
     from ..train import Trainer
 
+    claim_output(args.out, RUN, force=None)
     cfg = build_config(args)
     scene = load_scene_folder(args.scene)
     trainer = Trainer(scene, cfg, args.out, resume=args.resume)

@@ -49,11 +49,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "scene has them, else its pose grid)",
     )
     p.add_argument("--size", metavar="WxH", help="snapshot size (default the scene's sensor)")
-    p.add_argument("--mode", choices=["rgb", "depth", "opacity", "occupancy"], default="rgb")
+    p.add_argument(
+        "--mode",
+        choices=["rgb", "depth", "opacity", "occupancy"],
+        default="rgb",
+        help="what to show: rgb (the field's colour, default), depth (distance along the ray, "
+        "colour-mapped), opacity (how much of each ray the field stops), occupancy (the "
+        "occupancy grid's cells that are marked occupied, chequered by cell; ngp)",
+    )
     p.add_argument("--ev", type=float, default=0.0, help="exposure offset in stops")
     p.add_argument("--fov", type=float, help="vertical field of view in degrees")
     p.add_argument("--window", default="1280x800", metavar="WxH", help="window size")
     p.add_argument("--fps", type=float, default=30.0, help="target frame rate while moving")
+    p.add_argument(
+        "--force", action="store_true", help="replace --snapshot even if it is not an image"
+    )
     # test hooks: close after N frames and save the window's image
     p.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
     p.add_argument("--window-shot", help=argparse.SUPPRESS)
@@ -72,7 +82,7 @@ def _size(s: str, what: str) -> tuple[int, int]:
 
 
 def run(args) -> int:
-    from fastenerf.errors import InputError
+    from fastenerf.errors import FastenerfError, InputError
     from fastenerf.viewer.frame import ViewSettings
     from fastenerf.viewer.source import ViewSource
     from fastenerf.viewer.tonemap import Exposure
@@ -83,6 +93,7 @@ def run(args) -> int:
         raise InputError("--snapshot renders a run folder; it does not train")
     if args.pose and args.view_index is not None:
         raise InputError("give --pose or --view-index, not both")
+    check_view_outputs(args)
     if args.train:
         src = ViewSource.from_training(
             args.train,
@@ -112,12 +123,47 @@ def run(args) -> int:
     )
     if args.fov:
         v.fov_y = args.fov
-    v.run()
+    try:
+        v.run()
+    except RuntimeError as e:
+        if "glfwInit" not in str(e):
+            raise
+        raise FastenerfError(_NO_WINDOW.format(f"no window could be opened ({e})")) from None
     if args.window_shot:
         print(f"fastenerf view: wrote {args.window_shot}")
     if src.out_dir is not None:
         print(f"fastenerf view: screenshots and paths go to {src.out_dir}")
     return 0
+
+
+_NO_WINDOW = (
+    "{}: the viewer needs a display; run it on a desktop, under `xvfb-run`, "
+    "or render headless with --snapshot OUT.png"
+)
+
+
+def has_display() -> bool:
+    """False where no window can be opened: Linux/BSD without DISPLAY or WAYLAND_DISPLAY."""
+    import os
+    import sys
+
+    if sys.platform.startswith(("win", "darwin")):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def check_view_outputs(args) -> None:
+    """Before any work: a display for the window, and writable outputs."""
+    from fastenerf.errors import FastenerfError
+    from fastenerf.outputs import IMAGE, RUN, claim_output
+
+    if not args.snapshot and not has_display():
+        raise FastenerfError(_NO_WINDOW.format("no display (DISPLAY is not set)"))
+    for path, flag in ((args.snapshot, "--snapshot"), (args.window_shot, "--window-shot")):
+        if path:
+            claim_output(path, IMAGE, force=args.force, flag=flag)
+    if args.train and args.out:
+        claim_output(args.out, RUN, force=None)
 
 
 def _snapshot(args, src, settings) -> int:

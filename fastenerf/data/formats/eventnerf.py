@@ -11,11 +11,16 @@ SCENE/<split>/                 split: train, validation, test
                                enumerates the views by these files; real scenes hold placeholders)
 SCENE/fastenerf_scene.json     only in folders written by `export_eventnerf`: our SceneConfig
 ```
-Sensor 346x260 (their loader hard-codes it). Views are files sorted by name, as theirs are.
+Sensor 346x260 (their loader hard-codes it). Views are files sorted by name, as theirs are,
+matched by file stem across pose/, intrinsics/ and rgb/ (a missing or extra file is named in
+the error). Their view times come from the view's place in the listing; we take it from the
+number ending the stem, so a gap in the numbering (a view deleted) keeps the other views at
+their times, with a warning naming the missing views, instead of respacing them.
 
 Time, as their `data_loader_split.py` uses it: with M views and τ_max = max(t), view i sits at
-τ_i = i/(M-1)·τ_max, and the window that ends at view i and spans w views holds the events with
-τ_{i-w} <= τ < τ_i (half-open on the left). Cycled (real) configs wrap windows that start
+τ_i = i/(M-1)·τ_max (we count i by the view's number from the first; see above), and the
+window that ends at view i and spans w views holds the events with τ_{i-w} <= τ < τ_i
+(half-open on the left). Cycled (real) configs wrap windows that start
 before 0 to the end of the stream. The unit of t is not stored: synthetic scenes hold the frame
 index (integers 0..M-1, rendered at 1000 fps, so 1 unit = 1000 µs), real ones a float
 timestamp. We detect it (`time_unit=None`): integers with max = M-1 -> "frame"; floats below
@@ -31,6 +36,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import warnings
 from pathlib import Path
@@ -87,6 +93,8 @@ def load_eventnerf(
     n = len(views["c2w"])
     if n < 2:
         raise InputError(f"{root / split / 'pose'}: needs at least 2 views, found {n}")
+    slot = views["index"] - views["index"][0]  # view i's place in the sequence (gaps kept)
+    n_slots = int(slot[-1]) + 1
     raw = read_event_arrays(views["events"])
     tau = np.asarray(raw["t"])
     src = str(views["events"])
@@ -95,7 +103,7 @@ def load_eventnerf(
     if tau.dtype.kind == "f" and not np.all(np.isfinite(tau)):
         raise InputError(f"{src}: 't' is NaN or inf at event {int(np.argmax(~np.isfinite(tau)))}")
 
-    unit = time_unit or (meta or {}).get("time_unit") or _detect_time_unit(tau, n)
+    unit = time_unit or (meta or {}).get("time_unit") or _detect_time_unit(tau, n_slots)
     if unit not in TIME_UNITS_US:
         raise InputError(f"{src}: unknown time unit {unit!r} (one of {list(TIME_UNITS_US)})")
     scale = TIME_UNITS_US[unit]
@@ -108,14 +116,14 @@ def load_eventnerf(
     events = EventStream.from_arrays(raw["x"], raw["y"], t_us, raw["p"], width, height, src)
 
     span_us = tau_max * scale
-    t_views = origin + np.round(np.arange(n) / (n - 1) * span_us).astype(np.int64)
+    t_views = origin + np.round(slot / (n_slots - 1) * span_us).astype(np.int64)
     if np.any(np.diff(t_views) <= 0):
         raise InputError(
-            f"{src}: the stream ({span_us:.0f} µs) is too short for {n} views "
+            f"{src}: the stream ({span_us:.0f} µs) is too short for {n_slots} views "
             "at distinct microseconds"
         )
     kind = "synthetic" if unit == "frame" else "real"
-    cfg = _scene_config(root, meta, views, kind, width, height, t_views)
+    cfg = _scene_config(root, meta, views, kind, width, height, t_views, n_slots)
     scene = Scene(root, cfg, events, poses=(t_views, views["c2w"]))
     _attach_test_views(scene, root, split, test_split, views, meta, kind)
     return scene
@@ -259,16 +267,10 @@ def _read_views(split_dir: Path, require_events: bool) -> dict:
     rgb_files = _listing(split_dir / "rgb", IMAGE_EXTS)
     if not pose_files:
         raise InputError(f"{split_dir / 'pose'}: no pose files (*.txt)")
-    if len(intr_files) != len(pose_files):
-        raise InputError(
-            f"{split_dir}: {len(pose_files)} pose files but {len(intr_files)} "
-            "intrinsics files (one of each per view)"
-        )
-    if rgb_files and len(rgb_files) != len(pose_files):
-        raise InputError(
-            f"{split_dir}: {len(pose_files)} pose files but {len(rgb_files)} "
-            "rgb images (one per view)"
-        )
+    _match_views(split_dir, pose_files, "intrinsics", intr_files)
+    if rgb_files:  # optional: a folder may come without images
+        _match_views(split_dir, pose_files, "rgb", rgb_files)
+    index = _view_numbers(split_dir / "pose", pose_files)
     c2w = np.stack([_read_matrix(p, (4,)) for p in pose_files])
     _check_poses(c2w, pose_files)
     intr = None
@@ -299,7 +301,63 @@ def _read_views(split_dir: Path, require_events: bool) -> dict:
         "rgb": rgb_files,
         "events": events[0] if events else None,
         "pose_files": pose_files,
+        "index": index,
     }
+
+
+def _names(items: list[str], limit: int = 3) -> str:
+    more = f" and {len(items) - limit} more" if len(items) > limit else ""
+    return ", ".join(items[:limit]) + more
+
+
+def _match_views(split_dir: Path, pose_files: list[Path], sub: str, files: list[Path]) -> None:
+    """One `sub` file per pose file, matched by file stem; a missing or extra file named."""
+    stems = [f.stem for f in files]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        twice = [f.name for f in files if f.stem == dup[0]]
+        raise InputError(f"{split_dir / sub}: two files for view {dup[0]} ({', '.join(twice)})")
+    have, want = set(stems), {p.stem for p in pose_files}
+    missing = [p.name for p in pose_files if p.stem not in have]
+    extra = [f.name for f in files if f.stem not in want]
+    if missing:
+        raise InputError(
+            f"{split_dir}: pose/{missing[0]} has no {sub}/{Path(missing[0]).stem}.* file "
+            f"(missing for {_names(missing)}; one pose, intrinsics and rgb file per view)"
+        )
+    if extra:
+        raise InputError(
+            f"{split_dir}: {sub}/{extra[0]} has no pose/{Path(extra[0]).stem}.txt file "
+            f"(no pose for {_names(extra)}; one pose, intrinsics and rgb file per view)"
+        )
+
+
+def _view_numbers(pose_dir: Path, files: list[Path]) -> np.ndarray:
+    """(M,) int64: each view's number (the digits ending its stem) in the sequence, or
+    0..M-1 where the stems carry no numbers. A gap in the numbers is kept (the views keep
+    the times they have in the complete sequence) and reported as a warning."""
+    found = [re.search(r"(\d+)$", f.stem) for f in files]
+    if not all(found):
+        return np.arange(len(files), dtype=np.int64)
+    num = np.array([int(m.group(1)) for m in found], dtype=np.int64)
+    if np.any(np.diff(num) <= 0):
+        i = int(np.flatnonzero(np.diff(num) <= 0)[0])
+        raise InputError(
+            f"{pose_dir}: view numbers are not in file-name order ({files[i].name} sorts "
+            f"before {files[i + 1].name}); number the views with zero-padded, distinct numbers"
+        )
+    gaps = sorted(set(range(int(num[0]), int(num[-1]) + 1)) - set(num.tolist()))
+    if gaps:
+        width = len(found[0].group(1))
+        prefix = files[0].stem[: found[0].start()]
+        names = [f"{prefix}{g:0{width}d}" for g in gaps]
+        warnings.warn(
+            f"{pose_dir}: {len(gaps)} view(s) missing from the sequence {files[0].stem}.."
+            f"{files[-1].stem}: {_names(names)}; the other views keep their times by number "
+            "(their loader would respace them)",
+            stacklevel=3,
+        )
+    return num
 
 
 def _check_poses(c2w: np.ndarray, files: list[Path]) -> None:
@@ -345,6 +403,7 @@ def _scene_config(
     width: int,
     height: int,
     t_views: np.ndarray,
+    n_views: int,
 ) -> SceneConfig:
     m = views["intrinsics"]
     intr = IntrinsicsConfig(
@@ -384,7 +443,7 @@ def _scene_config(
     cfg.trajectory = TrajectoryConfig(kind="timed", poses_file="poses.npz")
     if not keep_span:  # (an export's own span keeps its loop period exactly)
         cfg.t_start_us, cfg.t_end_us = int(t_views[0]), int(t_views[-1])
-    cfg.n_views = len(t_views)
+    cfg.n_views = n_views  # views of the complete sequence (a gap keeps its place)
     return cfg.validate(str(root))
 
 
@@ -419,9 +478,12 @@ def _attach_test_views(
         t_meta = (meta or {}).get("test_t_us")
         if t_meta is not None and len(t_meta) == v:
             test_t = np.asarray(t_meta, dtype=np.int64)
-        else:  # their test views carry no time: nominal, uniform over the stream
+        else:  # their test views carry no time: nominal, uniform over the stream by number
             cfg = scene.config
-            test_t = np.round(np.linspace(cfg.t_start_us, cfg.t_end_us, v)).astype(np.int64)
+            slot = views["index"] - views["index"][0]
+            frac = slot / max(int(slot[-1]), 1)
+            test_t = np.round(cfg.t_start_us + frac * (cfg.t_end_us - cfg.t_start_us))
+            test_t = test_t.astype(np.int64)
         scene.test_t, scene.test_c2w, scene.test_rgb_paths = test_t, views["c2w"], views["rgb"]
         return
 

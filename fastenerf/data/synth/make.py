@@ -155,6 +155,7 @@ def make_scene_result(
     noise and seed.
     """
     from ...io import atomic_dir
+    from ...memory import check_memory, synth_bytes
     from ..formats.native import save_scene
     from .gl import GLRenderer
 
@@ -175,6 +176,10 @@ def make_scene_result(
                 f"--format eventnerf needs the {SENSOR[0]}x{SENSOR[1]} sensor that "
                 f"the EventNeRF loader hard-codes (got {width}x{height})"
             )
+    if supersample < 1 or chunk < 1:
+        raise InputError(f"supersample and chunk must be at least 1 (got {supersample}, {chunk})")
+    est = synth_bytes(width, height, frames, test_every, chunk, supersample)
+    check_memory(est, f"{frames} frames at {width}x{height}")
     sim = sim or SimulatorConfig(pos_threshold=threshold, bayer=bayer, noise=noise, seed=seed)
     sim.validate()
     scene = resolve_scene(name_or_mesh)
@@ -257,9 +262,9 @@ def _display_u8(linear: np.ndarray) -> np.ndarray:
 
 
 def _progress(total: int, desc: str, enabled: bool):
-    from tqdm import tqdm
+    from ...progress import progress_bar
 
-    return tqdm(total=total, desc=desc, unit="frame", disable=not enabled, leave=False)
+    return progress_bar(total=total, desc=desc, unit="frame", enabled=enabled)
 
 
 def summary(res: SynthResult) -> str:
