@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from .data.formats.native import Scene
 from .data.rig import Intrinsics
 from .errors import InputError
 from .io import write_image, write_json
+from .progress import progress_bar
 from .run import load_run, read_progress, scene_background
 
 GAMMA = 2.2
@@ -201,7 +201,7 @@ def render_eval_set(field, ev: EvalSet, chunk: int = 16384, progress: bool = Fal
     from .render import render_image
 
     preds = []
-    for c2w in tqdm(ev.c2w, desc="eval", unit="view", disable=not progress, leave=False):
+    for c2w in progress_bar(ev.c2w, desc="eval", unit="view", enabled=progress):
         img = render_image(
             field, c2w, ev.intrinsics, near=ev.near, background=ev.background, chunk=chunk
         )

@@ -30,6 +30,7 @@ from .fields import Field, make_field
 from .hooks import Hook, default_hooks
 from .io import write_json
 from .losses import total_loss
+from .memory import check_ray_batch
 from .perturb import perturb_training_data
 from .run import (
     CHECKPOINT,
@@ -45,6 +46,11 @@ from .sampling import RaySampler, WindowSampler
 HISTORY_MAX = 100_000
 # Batches the sampler draws at once: its host cost per block is about that of one batch.
 SAMPLER_PREFETCH = 16
+# (samples per ray, float32 values autograd keeps per sample) of a training step, for the
+# memory check before the first batch: vanilla's 64 + 128 samples through 8×256 layers (kept
+# for both passes); ngp's typical samples per ray once carved (the fog's first steps take more,
+# up to the marcher's cap) through the hash features and two 64-wide MLPs.
+BATCH_MEMORY = {"vanilla": (192, 4096), "ngp": (256, 512)}
 # Training-camera poses the ngp occupancy grid is told about (space none sees stays empty).
 OBSERVED_VIEWS = 100
 
@@ -71,6 +77,7 @@ class Trainer:
         random.seed(seed)
         np.random.seed(seed)
         torch.manual_seed(seed)
+        self._check_batch_memory()
         self._build_data(scene)
         self.field: Field = make_field(self.cfg.backend, scene.config, self.cfg).to(self.device)
         self.optimizer = self._make_optimizer()
@@ -112,6 +119,11 @@ class Trainer:
         ck = load_checkpoint(path)
         train_state.check_compatible(self, ck)
         return ck
+
+    def _check_batch_memory(self) -> None:
+        """Refuse (one line, with the estimate and the limit) a ray batch that cannot fit."""
+        spr, floats = BATCH_MEMORY[self.cfg.backend]
+        check_ray_batch(self.rays_per_step_total, spr, floats, str(self.device), "--rays")
 
     def _build_data(self, scene: Scene) -> None:
         """Rig, event index, window and ray samplers: the data half of the pipeline."""

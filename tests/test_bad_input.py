@@ -265,8 +265,7 @@ OUTPUT_ROWS = [
       "view {run} --snapshot {ro}/v.png", None, 2, "cannot write in"),
     R("eval-out-keeps-run-metrics", "output: eval --out elsewhere leaves RUN/metrics.json",
       "eval {run} --out {tmp}/ev --views 1 --scale 0.25 --no-progress",
-      a_file("run/metrics.json", '{"mine": 1}'), 0, "", "run/metrics.json",
-      marks=needs("the lead (eval --out: metrics.json goes there)")),
+      a_file("run/metrics.json", '{"mine": 1}'), 0, "", "run/metrics.json"),
 ]
 
 MEMORY_ROWS = [
@@ -286,9 +285,7 @@ MEMORY_ROWS = [
     R("render-orbit-1e8", "memory: render frames",
       "render {run} --out {tmp}/r --orbit 100000000", None, 2, "needs at least", env=MEM),
     R("train-rays-1e8", "memory: ray batch",
-      TRAIN.replace("--rays 64", "--rays 100000000"), None, 2, "--rays", env=MEM,
-      marks=needs("the lead (train calls memory.check_ray_batch); not run: it allocates",
-                  run=False)),
+      TRAIN.replace("--rays 64", "--rays 100000000"), None, 2, "--rays", env=MEM),
 ]
 
 CONFIG_ROWS = [
