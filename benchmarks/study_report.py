@@ -276,7 +276,7 @@ def _table(result: dict) -> list[str]:
     score = " PSNR | Δ | SSIM | steps | train s |"
     if sup:
         score += " supplement PSNR | supplement Δ |"
-    lines = [head + score, "|---" * n_first + "|---:" * (score.count("|") - 1) + "|"]
+    lines = [head + score, "|---" * n_first + "|---:" * score.count("|") + "|"]
     for r in rows:
         lines.append(_first_cells(study, r) + _score_cells(r, ref, sup))
     if study == "ablation":
@@ -303,7 +303,7 @@ def _first_cells(study: str, r: dict) -> str:
         )
     if study == "pose-error":
         return f"| {name} | {_f(m['mean_deg'], '.4g')} / {_f(m['max_deg'], '.4g')} |"
-    return f"| {name} | {100 * m['fraction']:.3g} % ({m['added_events']:,}) |"
+    return f"| {name} | {100 * m['fraction']:.3f} % ({m['added_events']:,}) |"
 
 
 def _score_cells(r: dict, ref, sup: dict) -> str:
