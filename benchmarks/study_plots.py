@@ -29,13 +29,14 @@ def zero_position(levels: list[float]) -> float:
 def plot_study(result: dict, path: str | Path, title: str = "") -> Path:
     """PSNR (dB) and SSIM against the level. result: a study's JSON object (rows in
     result["levels"], each with level, label, psnr, ssim, points)."""
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6))
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
     if result["study"] == "ablation":
         _categorical(axes, result)
     else:
         _numeric(axes, result)
     for ax, name in zip(axes, ("PSNR (dB, colour-corrected)", "SSIM"), strict=True):
         ax.set_ylabel(name)
+        ax.ticklabel_format(axis="y", useOffset=False)
         ax.grid(True, which="major", alpha=0.3)
     axes[0].legend(fontsize=8, loc="best")
     if title:
@@ -113,17 +114,25 @@ def _axis_break(ax, x: float) -> None:
 
 
 def _categorical(axes, result: dict) -> None:
+    """Named variants: one point each, its value written beside it (a dot plot: a bar on a
+    cut y axis would exaggerate small differences)."""
     rows = result["levels"]
     x = np.arange(len(rows))
     for key, ax in (("psnr", axes[0]), ("ssim", axes[1])):
         y = [r[key] if finite(r[key]) else np.nan for r in rows]
-        ax.bar(x, y, color="tab:blue", alpha=0.7, label="ours (at the budget)")
-        good = [v for v in y if np.isfinite(v)]
-        if good:
-            lo, hi = min(good), max(good)
-            pad = max(0.05 * (hi - lo), 0.5 if key == "psnr" else 0.01)
-            ax.set_ylim(lo - 3 * pad, hi + pad)
+        ax.plot(x, y, "o", color="tab:blue", ms=7, label="ours (at the budget)")
+        for xi, yi in zip(x, y, strict=True):
+            if np.isfinite(yi):
+                ax.annotate(
+                    f"{yi:.2f}" if key == "psnr" else f"{yi:.3f}",
+                    (xi, yi),
+                    textcoords="offset points",
+                    xytext=(7, 0),
+                    va="center",
+                    fontsize=8,
+                )
         ax.set_xticks(x, [r["label"] for r in rows], rotation=20)
+        ax.set_xlim(-0.5, len(rows) - 0.3)
         ax.set_xlabel("variant")
 
 

@@ -172,6 +172,7 @@ def summarize(study: str, rows: list[dict], levels: list, args, scene) -> dict[s
         "eval_scale": args.eval_scale,
         "levels_requested": levels,
         "complete": len(rows) == len(levels) and all(r["finished"] for r in rows),
+        "levels_not_run": [x for x in levels if x not in {r["level"] for r in rows}],
         "cpu_numbers": any(s["cpu_numbers"] for s in sessions),
         "machines": uniq("machine"),
         "git_commits": uniq("git_commit"),
@@ -229,7 +230,7 @@ def _read_tile(out: Path, row: dict) -> np.ndarray | None:
 
 def title(result: dict) -> str:
     b = result["budget"]
-    budget = f"{b['steps']} steps" if "steps" in b else f"{b['s']:g} s"
+    budget = f"{b['steps']} step{'s' * (b['steps'] != 1)}" if "steps" in b else f"{b['s']:g} s"
     cpu = "CPU numbers — " if result["cpu_numbers"] else ""
     return (
         f"{cpu}{result['study']} on {result['scene']}, ngp fast, {budget} per level — "
@@ -248,7 +249,13 @@ def markdown(result: dict) -> str:
     if result["cpu_numbers"]:
         lines += ["**CPU numbers**: reduced-size runs; the GPU study is the one to read.", ""]
     if not result["complete"]:
-        lines += ["**Incomplete:** some levels have not finished (continue with `--resume`).", ""]
+        missing = ", ".join(level_label(study, x) for x in result["levels_not_run"])
+        lines += [
+            "**Incomplete:** some levels have not finished"
+            + (f" ({missing} not started)" if missing else "")
+            + " — continue with `--resume`.",
+            "",
+        ]
     lines += [
         f"Scene {result['scene']} ({result['sensor'][0]}×{result['sensor'][1]}, "
         f"{result['n_views']} views per loop); commit {', '.join(result['git_commits'])}; "
