@@ -104,6 +104,13 @@ def run_levels(
     cfgs = {  # every level's config is built (and checked) before any trains
         lv: level_config(study, lv, scene, args, str(device), base) for lv in levels
     }
+    run_dirs = {lv: out / "runs" / level_slug(study, lv) for lv in levels}
+    held = [d for d in run_dirs.values() if (d / "checkpoint.pt").is_file()]
+    if held and not args.resume:  # refused before anything trains
+        raise InputError(
+            f"{held[0]}: already holds this level's run; pass --resume to keep or "
+            "continue the study, or choose another --out"
+        )
     session = session_info(device, args.commit)
     if session["machine"]["cpu_numbers"] and not args.quiet:
         print(f"CPU numbers: {session['machine']['name']}")
@@ -114,13 +121,8 @@ def run_levels(
     per_level_s = None  # wall seconds the last trained level took
     rows = []
     for lv in levels:
-        run_dir = out / "runs" / level_slug(study, lv)
+        run_dir = run_dirs[lv]
         started = (run_dir / "checkpoint.pt").is_file()
-        if started and not args.resume:
-            raise InputError(
-                f"{run_dir}: already holds this level's run; pass --resume to keep or "
-                "continue it, or choose another --out"
-            )
         if not (started and level_done(run_dir, args)):
             t0 = time.perf_counter()
             need = per_level_s if per_level_s is not None else _first_level_guess(args)

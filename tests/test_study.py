@@ -102,7 +102,9 @@ def test_resumed_study_redoes_nothing_and_unfinished_levels_continue(pose_study,
     args = ("--levels", "0", "1", "--steps", "1")
     assert study("pose-error", tiny_scene, pose_study, *args, "--resume") == 0
     assert progress(pose_study) == before
-    assert study("pose-error", tiny_scene, pose_study, *args) == 2  # never overwrites
+    # never overwrites, and refuses before training a new level
+    assert study("pose-error", tiny_scene, pose_study, "--levels", "0.5", "1") == 2
+    assert not (pose_study / "runs" / "pose-0.5deg").exists()
     # a larger budget: both levels continue from their checkpoints to the new one
     assert study("pose-error", tiny_scene, pose_study, *args[:3], "--steps", "2", "--resume") == 0
     after = progress(pose_study)
