@@ -1,4 +1,5 @@
-"""`fastenerf bench error-vs-time|knobs|kernels ...`: run a benchmark from the repo's benchmarks/.
+"""`fastenerf bench error-vs-time|knobs|kernels|study ...`: run a benchmark of the repo's
+benchmarks/ folder.
 
 The benchmarks are a plain folder at the repository root (not installed with the package); this
 command finds it beside the package when it is not importable, and hands the remaining
@@ -13,12 +14,16 @@ import inspect
 import sys
 from pathlib import Path
 
-HELP = "benchmarks: error against training time (ngp vs vanilla), ngp accuracy knobs, kernels"
+HELP = (
+    "benchmarks: error against training time (ngp vs vanilla), ngp accuracy knobs, kernels, "
+    "robustness studies (pose error, noise, ablation)"
+)
 
 BENCHMARKS = {
     "error-vs-time": "benchmarks.error_vs_time",
     "knobs": "benchmarks.knobs",
     "kernels": "benchmarks.kernels",
+    "study": "benchmarks.study",
 }
 
 

@@ -1,0 +1,201 @@
+"""`fastenerf bench study` (issue #15) on the CPU: the perturbations and knobs each level
+trained with are what the level says (read back from the runs), the outputs exist and decode,
+and a resumed study redoes nothing.
+
+The runs train real ngp fields (Warp kernels) for one or two steps on the tiny scene, so the
+PSNRs are meaningless; the tests check what each run was given and what was written.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import imageio.v3 as iio
+import pytest
+
+from fastenerf.cli import main as cli_main
+from fastenerf.commands.bench import import_benchmark
+from fastenerf.errors import InputError
+
+import_benchmark("study")  # puts the repo's benchmarks/ on the path
+from benchmarks import study_levels as lv  # noqa: E402
+
+# Small fields and batches: a couple of steps a second on a 2-core CPU.
+TINY = [
+    "--set",
+    "rays_per_step=32",
+    "windows_per_step=4",
+    "log2_table_size=12",
+    "n_levels=4",
+    "grid_resolution=32",
+    "dt_min=0.02",
+]
+FAST = ["--device", "cpu", "--eval-views", "2", "--eval-scale", "0.125"]
+FAST += ["--warmup-steps", "0", "--quiet", *TINY]
+
+
+def study(name, scene, out, *extra):
+    return cli_main(["bench", "study", name, str(scene), "--out", str(out), *FAST, *extra])
+
+
+def run_config(out, slug) -> dict:
+    return json.loads((out / "runs" / slug / "config.json").read_text())
+
+
+def progress(out) -> dict[str, tuple]:
+    """Each run folder's step and checkpoint / evaluation file times."""
+    return {
+        d.name: (
+            json.loads((d / "progress.json").read_text())["step"],
+            (d / "checkpoint.pt").stat().st_mtime_ns,
+            (d / "study_eval.json").stat().st_mtime_ns,
+        )
+        for d in sorted((out / "runs").iterdir())
+    }
+
+
+def check_outputs(out, name: str) -> tuple[dict, str]:
+    res = json.loads((out / f"{name}.json").read_text())
+    for png in (f"{name}.png", f"{name}_grid.png"):
+        img = iio.imread(out / png)
+        assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100
+        assert img[..., :3].std() > 0  # not a blank canvas
+    md = (out / f"{name}.md").read_text()
+    assert res["complete"] and res["cpu_numbers"] and "CPU numbers" in md
+    for r in res["levels"]:
+        assert r["finished"] and math.isfinite(r["psnr"]) and -1 <= r["ssim"] <= 1
+        assert r["psnr"] == pytest.approx(r["psnr_reloaded"])  # one evaluation path
+        assert r["train_s"] > 0 and r["sessions"][0]["machine"].startswith("CPU:")
+        tile = iio.imread(out / r["tile"])
+        assert tile.shape == (6, 8, 3)  # the evaluation scale: 64x48 at 1/8
+    return res, md
+
+
+@pytest.fixture(scope="module")
+def pose_study(tiny_scene, tmp_path_factory):
+    out = tmp_path_factory.mktemp("study") / "pose"
+    assert study("pose-error", tiny_scene, out, "--levels", "1", "0", "--steps", "1") == 0
+    return out
+
+
+def test_pose_study_applies_the_angle_it_reports(pose_study):
+    res, md = check_outputs(pose_study, "pose-error")
+    rows = {r["level"]: r for r in res["levels"]}
+    assert list(rows) == [0.0, 1.0]  # levels in ascending order
+    assert rows[0.0]["measured"]["mean_deg"] == 0.0 and rows[0.0]["perturbation"]["pose"] is None
+    m = rows[1.0]["measured"]
+    assert abs(m["mean_deg"] - 1.0) < 1e-6 and abs(m["max_deg"] - 1.0) < 1e-6
+    assert m["poses"] == 100  # every training pose of the 100-view loop, once
+    # the JSON's number is the trainer's own measurement of the rig it trained with
+    conf = run_config(pose_study, "pose-1deg")
+    assert conf["train"]["perturb"]["pose_error_deg"] == 1.0
+    assert conf["perturbation"]["pose"]["measured_mean_deg"] == m["mean_deg"]
+    assert run_config(pose_study, "pose-0deg")["perturbation"]["pose"] is None
+    # the same clean test views score both levels
+    assert res["break"]["largest_drop"]["from"] == 0.0 and res["break"]["largest_drop"]["to"] == 1
+    assert "27.43" in md and "18.11" in md and "between 0.1° and 1°" in md
+
+
+def test_resumed_study_redoes_nothing_and_unfinished_levels_continue(pose_study, tiny_scene):
+    before = progress(pose_study)
+    args = ("--levels", "0", "1", "--steps", "1")
+    assert study("pose-error", tiny_scene, pose_study, *args, "--resume") == 0
+    assert progress(pose_study) == before
+    # never overwrites, and refuses before training a new level
+    assert study("pose-error", tiny_scene, pose_study, "--levels", "0.5", "1") == 2
+    assert not (pose_study / "runs" / "pose-0.5deg").exists()
+    # a larger budget: both levels continue from their checkpoints to the new one
+    assert study("pose-error", tiny_scene, pose_study, *args[:3], "--steps", "2", "--resume") == 0
+    after = progress(pose_study)
+    assert {k: v[0] for k, v in after.items()} == {"pose-0deg": 2, "pose-1deg": 2}
+    res = json.loads((pose_study / "pose-error.json").read_text())
+    assert [len(r["sessions"]) for r in res["levels"]] == [2, 2]
+
+
+def test_noise_study_adds_the_fraction_it_reports(tiny_scene, tmp_path):
+    from fastenerf.data.formats import load_any
+
+    out = tmp_path / "noise"
+    assert study("noise", tiny_scene, out, "--levels", "0", "5", "--budget-s", "0.05") == 0
+    res, md = check_outputs(out, "noise")
+    rows = {r["level"]: r for r in res["levels"]}
+    clean = len(load_any(tiny_scene).events)
+    m = rows[5.0]["measured"]
+    assert m["clean_events"] == clean
+    assert abs(m["added_events"] - 0.05 * clean) <= 1  # within one event of F
+    assert abs(m["fraction"] - 0.05) <= 1 / clean
+    assert rows[0.0]["measured"]["added_events"] == 0
+    assert run_config(out, "noise-5pct")["train"]["perturb"]["noise_fraction"] == 0.05
+    # a time budget: evaluated in the loop at the budget (the last point)
+    for r in res["levels"]:
+        assert r["points"][-1]["target_s"] == 0.05 and r["points"][-1]["train_s"] >= 0.05
+    assert "27.36" in md and "5.000 %" in md
+
+
+def test_ablation_study_trains_each_variant_with_its_knobs(tiny_scene, tmp_path):
+    out = tmp_path / "ablation"
+    assert study("ablation", tiny_scene, out, "--steps", "1") == 0
+    res, md = check_outputs(out, "ablation")
+    assert [r["level"] for r in res["levels"]] == list(lv.STUDIES["ablation"].levels)
+    want = {  # 100 views per loop: short 1 %, long 5 %; the full window is U{1..5}
+        "full": (1, 5, 0.1, 1e-4),
+        "short": (1, 1, 0.1, 1e-4),
+        "long": (5, 5, 0.1, 1e-4),
+        "no-negatives": (1, 5, 0.001, 1e-4),
+        "no-distortion-loss": (1, 5, 0.1, 0.0),
+    }
+    for r in res["levels"]:
+        train = run_config(out, f"ablation-{r['level']}")["train"]
+        got = tuple(train[k] for k in ("win_min", "win_max", "neg_ratio", "distortion_weight"))
+        assert got == pytest.approx(want[r["level"]]), r["level"]
+        assert r["knobs"]["win_min"] == got[0] and r["knobs"]["neg_ratio"] == got[2]
+        assert train["perturb"] == {"pose_error_deg": 0.0, "noise_fraction": 0.0, "seed": 0}
+    assert "| short | 1..1 |" in md and "1 % of 100" in md
+
+
+def test_break_location_and_window_scaling():
+    b = lv.supplement_break("pose-error")
+    assert (b["largest_drop"]["from"], b["largest_drop"]["to"]) == (0.1, 1.0)
+    assert b["largest_drop"]["drop_db"] == pytest.approx(26.18 - 18.11)
+    assert b["first_below"] == 1.0
+    assert lv.supplement_break("noise")["first_below"] is None
+    assert lv.supplement_break("ablation") is None
+    # missing PSNRs are skipped; the pair is of the levels that have one
+    b = lv.locate_break([0, 0.1, 0.3, 1], [30.0, None, 29.0, 20.0])
+    assert (b["largest_drop"]["from"], b["largest_drop"]["to"]) == (0.3, 1)
+    assert lv.locate_break([0, 1], [30.0, float("nan")]) is None
+    # the authors' 10 / 50 of a 1000-pose loop
+    assert lv.level_overrides("ablation", "short", 1000, 0) == {"win_min": 10, "win_max": 10}
+    assert lv.level_overrides("ablation", "long", 1000, 0) == {"win_min": 50, "win_max": 50}
+    assert lv.level_overrides("ablation", "short", 30, 0)["win_max"] == 1  # never 0
+    p = lv.level_overrides("noise", 15, 100, 7)["perturb"]
+    assert (p.noise_fraction, p.seed) == (0.15, 7)
+
+
+def test_bad_levels_are_one_line_errors(tiny_scene, tmp_path, capsys):
+    assert lv.parse_levels("noise", ["30", "0", "5"]) == [0.0, 5.0, 30.0]
+    for name, bad in (
+        ("pose-error", ["180"]),
+        ("pose-error", ["-1"]),
+        ("noise", ["abc"]),
+        ("noise", ["5", "5.0"]),
+        ("ablation", ["full", "medium"]),
+    ):
+        with pytest.raises(InputError):
+            lv.parse_levels(name, bad)
+    assert study("ablation", tiny_scene, tmp_path / "x", "--levels", "medium") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "medium" in err[0] and "Traceback" not in err[0]
+    assert study("pose-error", tiny_scene, tmp_path / "x", "--grid-view", "3") == 2
+    assert not (tmp_path / "x" / "runs").exists()
+
+
+def test_help_documents_levels_and_outputs(capsys):
+    for argv in (["bench", "study", "--help"], ["bench", "study", "noise", "--help"]):
+        with pytest.raises(SystemExit) as e:
+            cli_main(argv)
+        assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert "0 0.01 0.1 0.3 0.5 1 2 degrees" in text and "no-distortion-loss" in text
+    assert "STUDY_grid.png" in text and "noise.md" in text and "27.31" in text
