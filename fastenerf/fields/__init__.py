@@ -1,6 +1,7 @@
 """Field backends behind one interface (`fields.base.Field`), chosen by name.
 
-A backend is a module `fastenerf.fields.<name>` exposing
+The backend names are `fastenerf.backends.BACKENDS` (the one registry); a backend is a module
+`fastenerf.fields.<name>` exposing
     build(scene: SceneConfig, cfg: TrainConfig) -> Field   a new field for a scene
     from_config(config: dict) -> Field                     rebuild from `Field.config_dict()`
 Modules are imported lazily, so the vanilla path works without the ngp kernels.
@@ -11,18 +12,19 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
+from ..backends import BACKEND_NAMES
+from ..backends import backend as registry_entry
 from ..errors import InputError
 from .base import Field, RenderOutput
 
-BACKENDS = ("ngp", "vanilla")
+BACKENDS = BACKEND_NAMES  # the registry's names (fastenerf.backends)
 
 __all__ = ["BACKENDS", "Field", "RenderOutput", "backend_module", "field_from_config", "make_field"]
 
 
-def backend_module(backend: str) -> ModuleType:
-    """The module implementing `backend`, or a one-line `InputError`."""
-    if backend not in BACKENDS:
-        raise InputError(f"unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+def backend_module(name: str) -> ModuleType:
+    """The module implementing backend `name`, or a one-line `InputError`."""
+    backend = registry_entry(name).name
     name = f"fastenerf.fields.{backend}"
     try:
         return importlib.import_module(name)
