@@ -325,7 +325,7 @@ class TrainConfig:
     steps: int | None = field(default=None, metadata={"min": 0, "max": 1_000_000_000})
     """Step budget: the run's TOTAL number of steps (with --resume too: steps already done
     count towards it)."""
-    minutes: float | None = field(default=None, metadata={"min": 0.0, "max": 1e7})
+    minutes: float | None = field(default=None, metadata={"min": 0, "max": 10_000_000})
     """Training-time budget in minutes, evaluation and checkpoints excluded (with --resume:
     the run's total). Default when neither budget is given: 1 minute."""
     distortion_weight: float | None = field(default=None, metadata={"min": 0.0, "max": 1e6})
