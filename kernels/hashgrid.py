@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from .common import device_of, fast_view, init, launcher, stream_of, to_wp
+from .common import device_of, fast_view, init, launch
 from .gridconfig import HashGridConfig
 
 init()
@@ -388,12 +388,11 @@ def grid_indices(ijk: torch.Tensor, level: int, cfg: HashGridConfig) -> torch.Te
     ijk = ijk.to(torch.int32).contiguous()
     dev = device_of(ijk)
     out = torch.empty(ijk.shape[0], dtype=torch.int64, device=ijk.device)
-    wp.launch(
+    launch(
         _grid_index_kernel,
-        dim=ijk.shape[0],
-        device=dev,
-        stream=stream_of(ijk),
-        inputs=[to_wp(ijk, dtype=wp.vec3i), _levels_wp(cfg, dev), int(level), to_wp(out)],
+        ijk.shape[0],
+        ijk,
+        [fast_view(ijk, wp.vec3i), _levels_wp(cfg, dev), int(level), out],
     )
     return out
 
@@ -414,7 +413,8 @@ def _launch_forward(x, table, cfg: HashGridConfig, variant: _Variant, storage: t
         variant = dataclasses.replace(variant, pairs=False)  # 16-byte loads need alignment
     fwd, _, _ = variant.kernels(F)
     if n:
-        launcher(fwd)(
+        launch(
+            fwd,
             n * L,
             x,
             [
@@ -456,7 +456,8 @@ class _HashGridEncode(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             grad_table = torch.zeros_like(table)
             if n:
-                launcher(bwd_table)(
+                launch(
+                    bwd_table,
                     variant.backward_threads(n, L),
                     x,
                     [
@@ -471,7 +472,8 @@ class _HashGridEncode(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             grad_x = torch.empty_like(x)
             if n:
-                launcher(bwd_x)(
+                launch(
+                    bwd_x,
                     n,
                     x,
                     [
