@@ -13,7 +13,7 @@ from fastenerf import backends
 from fastenerf.backends import BACKENDS, NGPOptions, VanillaOptions, get_option, parse_options
 from fastenerf.config import CylinderConfig, TrainConfig, train_preset
 from fastenerf.errors import InputError
-from fastenerf.fields import field_from_config, make_field
+from fastenerf.fields import canonical_field_config, field_from_config, make_field
 from fastenerf.fields.base import Field
 from fastenerf.schema import field_docs
 
@@ -167,6 +167,8 @@ def test_old_flat_field_config_rebuilds_the_same_field(backend, old, scene_confi
     new = make_field(backend, scene, TrainConfig(backend=backend, backend_options=flat))
     rebuilt = field_from_config(backend, old)
     assert rebuilt.config_dict() == new.config_dict()
+    # a resume compares configs without building a field
+    assert canonical_field_config(backend, old) == new.config_dict()
     assert rebuilt.cylinder == CYL and isinstance(rebuilt.cylinder, CylinderConfig)
     rebuilt.load_state_dict(new.state_dict())
     x = torch.rand(64, 3) - 0.5

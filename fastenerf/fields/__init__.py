@@ -19,7 +19,15 @@ from .base import Field, RenderOutput
 
 BACKENDS = BACKEND_NAMES  # the registry's names (fastenerf.backends)
 
-__all__ = ["BACKENDS", "Field", "RenderOutput", "backend_module", "field_from_config", "make_field"]
+__all__ = [
+    "BACKENDS",
+    "Field",
+    "RenderOutput",
+    "backend_module",
+    "canonical_field_config",
+    "field_from_config",
+    "make_field",
+]
 
 
 def backend_module(name: str) -> ModuleType:
@@ -45,3 +53,10 @@ def make_field(backend: str, scene, cfg) -> Field:
 def field_from_config(backend: str, config: dict) -> Field:
     """Rebuild a field of `backend` from the `config_dict()` saved in a checkpoint."""
     return backend_module(backend).from_config(config)
+
+
+def canonical_field_config(backend: str, config: dict) -> dict:
+    """The `config_dict()` that `field_from_config(backend, config)` would give, without
+    building the field: older (flat) saved forms in today's form, for comparing a checkpoint's
+    field config with a new field's on resume."""
+    return backend_module(backend).canonical_config(config)

@@ -37,6 +37,12 @@ from .base import Field, RenderOutput, check_points
 INIT_OPTICAL_DEPTH = 9.0
 
 
+def _fog_bias(aabb) -> float:
+    """density_bias giving a fog of optical depth INIT_OPTICAL_DEPTH across the box's mean side."""
+    box = np.asarray(aabb, dtype=np.float64)
+    return math.log(INIT_OPTICAL_DEPTH / float(np.mean(box[3:] - box[:3])))
+
+
 class _TruncExp(torch.autograd.Function):
     """exp with a clamped argument, so σ and its gradient stay finite for huge logits.
 
@@ -100,9 +106,7 @@ class NGPField(Field):
         opt = options or NGPOptions()
         net = opt.network
         if net.density_bias is None:
-            box = np.asarray(aabb, dtype=np.float64)
-            extent = float(np.mean(box[3:] - box[:3]))
-            net = dataclasses.replace(net, density_bias=math.log(INIT_OPTICAL_DEPTH / extent))
+            net = dataclasses.replace(net, density_bias=_fog_bias(aabb))
             opt = dataclasses.replace(opt, network=net)
         self.options = opt
         self.cylinder = cylinder
@@ -277,10 +281,11 @@ def build(scene: SceneConfig, cfg) -> NGPField:
     return NGPField(aabb, opts, scene.cylinder, seed=getattr(cfg, "seed", 0), device=device)
 
 
-def from_config(config: dict, device: str | torch.device | None = None) -> NGPField:
-    """Rebuild a field from its `config_dict()` (checkpoints); load the weights after.
+def canonical_config(config: dict) -> dict:
+    """The `config_dict()` of the field `from_config(config)` builds, without building it.
 
-    Also reads the flat `options` of runs saved before the options had sections.
+    Turns the flat options of runs saved before the options had sections into today's form, so
+    a resume can compare a checkpoint's field config with a new field's.
     """
     where = "checkpoint field_config"
     if not isinstance(config, dict) or "aabb" not in config or "options" not in config:
@@ -288,10 +293,26 @@ def from_config(config: dict, device: str | torch.device | None = None) -> NGPFi
     options = dict(config["options"])
     if "network" not in options and "density_bias" not in options:
         options["density_bias"] = 0.0  # runs saved before density_bias were trained without
+    opts = parse_options("ngp", options, f"{where} options")
+    if opts.network.density_bias is None:
+        opts = dataclasses.replace(
+            opts, network=dataclasses.replace(opts.network, density_bias=_fog_bias(config["aabb"]))
+        )
     cyl = config.get("cylinder")
+    cyl = dataclasses.asdict(CylinderConfig(**cyl)) if cyl else None
+    aabb = [float(v) for v in np.asarray(config["aabb"], dtype=np.float32)]
+    return {"aabb": aabb, "options": dataclasses.asdict(opts), "cylinder": cyl}
+
+
+def from_config(config: dict, device: str | torch.device | None = None) -> NGPField:
+    """Rebuild a field from its `config_dict()` (checkpoints); load the weights after.
+
+    Also reads the flat `options` of runs saved before the options had sections.
+    """
+    c = canonical_config(config)
     return NGPField(
-        config["aabb"],
-        parse_options("ngp", options, f"{where} options"),
-        CylinderConfig(**cyl) if cyl else None,
+        c["aabb"],
+        parse_options("ngp", c["options"]),
+        CylinderConfig(**c["cylinder"]) if c["cylinder"] else None,
         device=device,
     )

@@ -312,8 +312,8 @@ def build(scene, cfg) -> VanillaField:
     return VanillaField(list(scene.aabb), opts, scene.cylinder)
 
 
-def from_config(config: dict, device=None) -> VanillaField:
-    """Rebuild a field from its `config_dict()` (checkpoints); load the weights after.
+def canonical_config(config: dict) -> dict:
+    """The `config_dict()` of the field `from_config(config)` builds, without building it.
 
     Also reads runs saved before the options had a dataclass: options as top-level keys and
     the cylinder as a [radius, y_min, y_max] list.
@@ -328,5 +328,17 @@ def from_config(config: dict, device=None) -> VanillaField:
         cyl = CylinderConfig(*cyl)
     elif isinstance(cyl, dict):
         cyl = CylinderConfig(**cyl)
-    field = VanillaField(aabb, parse_options("vanilla", options, f"{where} options"), cyl)
+    return {
+        "aabb": [float(v) for v in torch.tensor(aabb, dtype=torch.float32)],
+        "options": dataclasses.asdict(parse_options("vanilla", options, f"{where} options")),
+        "cylinder": None if cyl is None else dataclasses.asdict(cyl),
+    }
+
+
+def from_config(config: dict, device=None) -> VanillaField:
+    """Rebuild a field from its `config_dict()` (checkpoints, also older flat ones); load the
+    weights after."""
+    c = canonical_config(config)
+    cyl = None if c["cylinder"] is None else CylinderConfig(**c["cylinder"])
+    field = VanillaField(c["aabb"], parse_options("vanilla", c["options"]), cyl)
     return field if device is None else field.to(device)
