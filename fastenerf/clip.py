@@ -13,7 +13,10 @@ import numpy as np
 import torch
 
 from .config import CylinderConfig
+from .errors import InputError
 
+# CylinderConfig is the clip's type everywhere (scene, fields, mesh); a plain (radius, y_min,
+# y_max) sequence is accepted by these helpers for numeric callers.
 Cylinder = CylinderConfig | Sequence[float]
 
 
@@ -50,7 +53,7 @@ def clip_density(sigma: torch.Tensor, x: torch.Tensor, cyl: Cylinder | None) -> 
 def clip_aabb(aabb: Sequence[float], cyl: Cylinder | None) -> list[float]:
     """The box [xmin, ymin, zmin, xmax, ymax, zmax] shrunk to the cylinder's bounding box.
 
-    Raises ValueError when they do not overlap (the clip would leave nothing).
+    Raises InputError (a ValueError) when they do not overlap (the clip would leave nothing).
     """
     box = [float(v) for v in aabb]
     if cyl is None:
@@ -59,5 +62,5 @@ def clip_aabb(aabb: Sequence[float], cyl: Cylinder | None) -> list[float]:
     lo = [max(box[0], -r), max(box[1], y0), max(box[2], -r)]
     hi = [min(box[3], r), min(box[4], y1), min(box[5], r)]
     if any(a >= b for a, b in zip(lo, hi, strict=True)):
-        raise ValueError(f"the clip cylinder (r={r}, y {y0}..{y1}) does not overlap the box {box}")
+        raise InputError(f"the clip cylinder (r={r}, y {y0}..{y1}) does not overlap the box {box}")
     return lo + hi

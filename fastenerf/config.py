@@ -14,13 +14,16 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import types
-import typing
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from . import backends
+from .backends import BACKEND_NAMES, get_option, parse_options
 from .errors import InputError
+from .schema import check as _check
+from .schema import check_ranges, from_dict
 
 
 @dataclass
@@ -68,11 +71,73 @@ class TrajectoryConfig:
 
 @dataclass
 class CylinderConfig:
-    """Density clip (supplement A.2): zero outside x² + z² ≤ radius², y_min ≤ y ≤ y_max."""
+    """Density clip (supplement A.2): zero outside x² + z² ≤ radius², y_min ≤ y ≤ y_max.
+
+    World units; y is the turntable axis. The one cylinder type of both field backends, the
+    occupancy grid and the mesh extractor.
+    """
 
     radius: float = 0.25
+    """Radius about the world y axis, world units."""
     y_min: float = -0.35
+    """Bottom of the cylinder (world y)."""
     y_max: float = 0.15
+    """Top of the cylinder (world y)."""
+
+    @classmethod
+    def parse(cls, text: str, where: str = "--cylinder") -> CylinderConfig | None:
+        """ "R,YMIN,YMAX" -> CylinderConfig; "none" / "off" -> None (no clip)."""
+        if text.strip().lower() in ("none", "off"):
+            return None
+        parts = [p for p in text.replace(" ", ",").split(",") if p]
+        try:
+            r, y0, y1 = (float(p) for p in parts)
+        except ValueError:
+            raise InputError(
+                f"{where}: expected R,YMIN,YMAX (three numbers, world units) or none, got {text!r}"
+            ) from None
+        cyl = cls(r, y0, y1)
+        cyl.check(where)
+        return cyl
+
+    def check(self, where: str) -> None:
+        """One line unless the values are finite with radius > 0 and y_min < y_max."""
+        vals = (self.radius, self.y_min, self.y_max)
+        if not all(math.isfinite(v) for v in vals):
+            raise InputError(f"{where}: cylinder values must be finite, got {vals}")
+        if not (self.radius > 0 and self.y_min < self.y_max):
+            raise InputError(
+                f"{where}: 'cylinder' needs radius > 0 and y_min < y_max, got r={self.radius:g}, "
+                f"y {self.y_min:g}..{self.y_max:g}"
+            )
+
+    def bounding_box(self) -> list[float]:
+        """[xmin, ymin, zmin, xmax, ymax, zmax] of the cylinder, world units."""
+        r = self.radius
+        return [-r, self.y_min, -r, r, self.y_max, r]
+
+
+# The EventNeRF authors' released real scenes (their `nextnextgen/` configs, DESIGN §9): radius
+# 0.25 and y_max 0.195 for all, y_min and event threshold per scene. Applied when an EventNeRF
+# real-capture folder of that name is read.
+EVENTNERF_REAL_Y_MIN = {
+    "bottle": -0.14,
+    "chicken": -0.08,
+    "controller": -0.04,
+    "cube": 0.045,
+    "dragon": -0.15,
+    "microphone": -0.14,
+    "multimeter": -0.06,
+    "plant": -0.065,
+    "tapes": -0.12,
+}
+EVENTNERF_REAL_THRESHOLD = {"cube": 0.20}  # every other released scene: 0.10
+
+
+def eventnerf_real_cylinder(name: str) -> CylinderConfig | None:
+    """The clip of the authors' released real scene `name` (case-insensitive), else None."""
+    y_min = EVENTNERF_REAL_Y_MIN.get(name.lower())
+    return None if y_min is None else CylinderConfig(0.25, y_min, 0.195)
 
 
 @dataclass
@@ -162,12 +227,13 @@ class SceneConfig:
             _check(len(self.background) == 3, where, "background", "must be [r, g, b] or null")
         _check(self.near >= 0, where, "near", "must not be negative")
         if self.cylinder is not None:
-            c = self.cylinder
+            self.cylinder.check(where)
+            box, cb = self.aabb, self.cylinder.bounding_box()
             _check(
-                c.radius > 0 and c.y_min < c.y_max,
+                all(max(box[i], cb[i]) < min(box[i + 3], cb[i + 3]) for i in range(3)),
                 where,
                 "cylinder",
-                "needs radius > 0 and y_min < y_max",
+                f"does not overlap the box {box} (the clip would leave nothing)",
             )
         return self
 
@@ -201,171 +267,128 @@ class SceneConfig:
         return write_json(path / "scene.json" if path.is_dir() else path, self.to_dict())
 
 
-def _check(cond: bool, where: str, key: str, msg: str) -> None:
-    if not cond:
-        raise InputError(f"{where}: '{key}' {msg}")
-
-
-def from_dict(cls: type, d: Any, where: str, prefix: str = "") -> Any:
-    """Build dataclass `cls` from a JSON object, with one-line errors naming the key path."""
-    if not isinstance(d, dict):
-        raise InputError(f"{where}: '{prefix.rstrip('.') or cls.__name__}' must be an object")
-    hints = typing.get_type_hints(cls)
-    kwargs = {}
-    names = {f.name for f in dataclasses.fields(cls)}
-    for key in d:
-        if key not in names:
-            raise InputError(f"{where}: unknown key '{prefix}{key}'")
-    for f in dataclasses.fields(cls):
-        key = prefix + f.name
-        if f.name not in d:
-            if f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-                raise InputError(f"{where}: missing key '{key}'")
-            continue
-        kwargs[f.name] = _coerce(hints[f.name], d[f.name], where, key)
-    return cls(**kwargs)
-
-
-def _coerce(tp: Any, v: Any, where: str, key: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        if v is None and type(None) in args:
-            return None
-        inner = [a for a in args if a is not type(None)]
-        return _coerce(inner[0], v, where, key)
-    if dataclasses.is_dataclass(tp):
-        return from_dict(tp, v, where, key + ".")
-    if origin is Literal:
-        if v not in args:
-            raise InputError(f"{where}: '{key}' must be one of {list(args)}, got {v!r}")
-        return v
-    if origin is list:
-        if not isinstance(v, list):
-            raise InputError(f"{where}: '{key}' must be a list")
-        return [_coerce(args[0], x, where, f"{key}[{i}]") for i, x in enumerate(v)]
-    if tp is bool:
-        if not isinstance(v, bool):
-            raise InputError(f"{where}: '{key}' must be true or false")
-        return v
-    if tp in (int, float):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise InputError(f"{where}: '{key}' must be a number, got {v!r}")
-        if not math.isfinite(v):  # before int(): int(inf) / int(nan) would raise
-            raise InputError(f"{where}: '{key}' is not finite ({v})")
-        if tp is int and float(v) != int(v):
-            raise InputError(f"{where}: '{key}' must be an integer, got {v!r}")
-        return tp(v)
-    if tp is str:
-        if not isinstance(v, str):
-            raise InputError(f"{where}: '{key}' must be a string")
-        return v
-    return v
-
-
 # --------------------------------------------------------------------------------------------
-# Training configuration (appended for the trainer; see fastenerf/train.py).
+# Training configuration (see fastenerf/train.py).
 
-# Learning rate per backend when a preset leaves it open: the reference's constant 5e-4 for the
-# NeRF MLP (§9), instant-ngp's 1e-2 for hash grids (§4).
-BACKEND_LR = {"vanilla": 5e-4, "ngp": 1e-2}
+MAX_RAYS_PER_STEP = 1 << 20
+"""Pixels per step above this are refused: each is rendered twice with up to hundreds of
+samples, so 2^20 already needs tens of GiB on a GPU for the ngp backend."""
+
+DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 
 
 @dataclass
 class TrainConfig:
     """How to train one field on one scene (saved resolved in RUN/config.json).
 
-    `None` means "the default for this scene and device", filled by `resolved()`:
-    log_eps 0.1 synthetic / 1e-5 real (the reference's; presets other than "eventnerf" use the
-    simulator's eps when scene.json records one), win_max 50 / 100 views, neg_ratio 0.1 / 0.05,
-    distortion_weight 1e-4 / 0 (DESIGN §9; win_max scaled by n_views / 1000, the reference's
-    loop length), lr by backend, rays_per_step by device.
-    Windows are measured in views (grid steps of the stream's pose grid); times are µs.
+    `None` means "the default for this scene and device", filled by `resolved()` (each field's
+    docstring says what that default is). Windows are measured in views (grid steps of the
+    stream's pose grid); times are µs; the budget is whichever of steps / minutes ends first.
+    Every field is a flag of `fastenerf train` (`win_max` -> `--win-max`), its help this text.
     """
 
-    backend: Literal["ngp", "vanilla"] = "ngp"
+    backend: str = field(default="ngp", metadata={"choices": BACKEND_NAMES})
+    """Field backend."""
     preset: Literal["eventnerf", "fast", "custom"] = "fast"
-    log_eps: float | None = None  # L(c) = log(c**gamma + log_eps)
-    gamma: float = 2.2
-    win_min: int = 1  # window length w ~ U{win_min..win_max} views
-    win_max: int | None = None
-    win_redraw: Literal["step", "load"] = "step"  # "load": one w per end view, drawn once
-    neg_ratio: float | None = None  # fraction of rays at uniform pixels
-    rays_per_step: int | None = None  # pixels per step; each is rendered at t0 and at t1
-    windows_per_step: int = 1  # the pixels are split evenly over this many windows
-    lr: float | None = None
-    lr_final: float | None = None  # None: constant lr; else exponential decay to this
-    lr_warmup_steps: int = 0
-    adam_betas: list[float] | None = None  # None: backend default
-    adam_eps: float | None = None
-    steps: int | None = None  # budget: stop at whichever of steps / minutes comes first
-    minutes: float | None = None  # training time, evaluation excluded
-    distortion_weight: float | None = None
-    checkpoint_every_s: float = 30.0  # wall seconds between checkpoints (0: only at the end)
-    checkpoint_every_steps: int = 0  # and/or every this many steps (0: by time only)
-    eval_every_s: float = 30.0  # quick eval for the progress bar (0: never)
-    eval_views: int = 3
-    eval_scale: float = 0.25
-    log_every: int = 10  # metrics.jsonl line every this many steps
-    seed: int = 0
-    amp: bool = True  # bf16 autocast, CUDA only
+    """Where the unset knobs come from: eventnerf (the reference's settings) or fast (ours)."""
+    log_eps: float | None = field(default=None, metadata={"gt": 0.0, "max": 10.0})
+    """eps of the log transform L(c) = log(c**gamma + eps), the guard against log(0).
+    Default: 0.1 synthetic, 1e-5 real (the reference's); presets other than eventnerf use the
+    simulator's eps when scene.json records one."""
+    gamma: float = field(default=2.2, metadata={"gt": 0.0, "max": 10.0})
+    """Display-to-linear exponent of the log transform: linear intensity is c**gamma."""
+    win_min: int = field(default=1, metadata={"min": 1, "max": 1_000_000})
+    """Shortest event window, views: the length is drawn as w ~ U{win_min..win_max}."""
+    win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
+    """Longest event window, views. Default: 50 synthetic / 100 real views of a 1000-view
+    loop (the reference's), scaled by n_views / 1000."""
+    win_redraw: Literal["step", "load"] = "step"
+    """When window lengths are drawn: every step (ours), or once per end view at load time
+    (load, the reference's)."""
+    neg_ratio: float | None = field(default=None, metadata={"min": 0.0, "max": 1.0})
+    """Fraction of each batch drawn at uniform pixels (negative sampling; the rest among pixels
+    with events in their window). Default: 0.1 synthetic, 0.05 real."""
+    rays_per_step: int | None = field(default=None, metadata={"min": 1, "max": MAX_RAYS_PER_STEP})
+    """Pixels per step, each rendered at the window's start and end. Default: by preset and
+    device (8192 on CUDA, 512 on a CPU; 1024 for eventnerf)."""
+    windows_per_step: int = field(default=1, metadata={"min": 1, "max": 65536})
+    """Windows per step; the pixels are split evenly over them (fast preset: 16)."""
+    lr: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
+    """Initial learning rate. Default: by backend (ngp 1e-2, vanilla 5e-4)."""
+    lr_final: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
+    """Learning rate at the end of the budget, reached by exponential decay; unset: constant
+    (fast preset: lr / 10)."""
+    lr_warmup_steps: int = field(default=0, metadata={"min": 0, "max": 1_000_000_000})
+    """Steps of linear learning-rate warm-up from 0."""
+    adam_betas: list[float] | None = None
+    """Adam's two betas, each in [0, 1). Default: by backend (ngp 0.9 0.99, vanilla 0.9
+    0.999)."""
+    adam_eps: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
+    """Adam's eps. Default: by backend (ngp 1e-15, vanilla 1e-8)."""
+    steps: int | None = field(default=None, metadata={"min": 0, "max": 1_000_000_000})
+    """Step budget: the run's TOTAL number of steps (with --resume too: steps already done
+    count towards it)."""
+    minutes: float | None = field(default=None, metadata={"min": 0, "max": 10_000_000})
+    """Training-time budget in minutes, evaluation and checkpoints excluded (with --resume:
+    the run's total). Default when neither budget is given: 1 minute."""
+    distortion_weight: float | None = field(default=None, metadata={"min": 0.0, "max": 1e6})
+    """Weight of the mip-NeRF 360 distortion loss. Default: 1e-4 synthetic, 0 real."""
+    checkpoint_every_s: float = field(default=30.0, metadata={"min": 0.0, "max": 1e9})
+    """Wall seconds between checkpoints (0: only at the end and on Ctrl-C); written in the
+    background, so a kill loses at most this much."""
+    checkpoint_every_steps: int = field(default=0, metadata={"min": 0, "max": 1_000_000_000})
+    """And/or a checkpoint every this many steps (0: by time only)."""
+    eval_every_s: float = field(default=30.0, metadata={"min": 0.0, "max": 1e9})
+    """Seconds of training between quick evaluations on test views (0: never)."""
+    eval_views: int = field(default=3, metadata={"min": 1, "max": 100_000})
+    """Test views of a quick evaluation."""
+    eval_scale: float = field(default=0.25, metadata={"gt": 0.0, "max": 4.0})
+    """Image scale of a quick evaluation."""
+    log_every: int = field(default=10, metadata={"min": 1, "max": 1_000_000_000})
+    """Write a metrics.jsonl line every this many steps."""
+    seed: int = field(default=0, metadata={"min": 0, "max": 2**32 - 1})
+    """Random seed (weights, window lengths, rays)."""
+    amp: bool = True
+    """bf16 autocast of the MLPs (CUDA only)."""
     device: str = "auto"
-    chunk: int = 16384  # rays per render call outside training
+    """auto (CUDA if there is one, else CPU), cpu, cuda or cuda:N."""
+    chunk: int = field(default=16384, metadata={"min": 1, "max": 1 << 22})
+    """Rays per render call outside training (evaluation, rendering)."""
     backend_options: dict[str, Any] = field(default_factory=dict)
+    """The backend's options (fastenerf.backends: NGPOptions / VanillaOptions), as JSON nested
+    by section or flat."""
     perturb: PerturbConfig = field(default_factory=lambda: PerturbConfig())
     """The robustness studies' perturbations of the training data (pose error, noise events)."""
 
     def validate(self, where: str = "train config") -> TrainConfig:
-        _check(self.backend in ("ngp", "vanilla"), where, "backend", "must be 'ngp' or 'vanilla'")
+        """Check every value's type-free range; raise a one-line InputError naming the key."""
+        check_ranges(self, where)
         _check(
-            self.log_eps is None or self.log_eps > 0,
+            DEVICE_PATTERN.match(str(self.device)) is not None,
             where,
-            "log_eps",
-            "must be > 0 (log(0) is -inf: the eps guard cannot be off)",
+            "device",
+            f"must be auto, cpu, cuda or cuda:N, got {self.device!r}",
         )
-        _check(self.gamma > 0, where, "gamma", "must be positive")
-        _check(self.win_min >= 1, where, "win_min", "must be at least 1 view")
         _check(
             self.win_max is None or self.win_max >= self.win_min,
             where,
             "win_max",
-            "must be >= win_min",
+            f"must be >= win_min ({self.win_min}), got {self.win_max}",
         )
-        _check(self.win_redraw in ("step", "load"), where, "win_redraw", "must be step or load")
-        _check(
-            self.neg_ratio is None or 0.0 <= self.neg_ratio <= 1.0,
-            where,
-            "neg_ratio",
-            "must be in [0, 1]",
-        )
-        _check(
-            self.rays_per_step is None or self.rays_per_step >= 1,
-            where,
-            "rays_per_step",
-            "must be positive",
-        )
-        _check(self.windows_per_step >= 1, where, "windows_per_step", "must be positive")
         _check(
             self.rays_per_step is None or self.rays_per_step >= self.windows_per_step,
             where,
             "rays_per_step",
-            "must be at least windows_per_step",
+            f"must be at least windows_per_step ({self.windows_per_step})",
         )
-        _check(self.lr is None or self.lr > 0, where, "lr", "must be positive")
-        _check(self.lr_final is None or self.lr_final > 0, where, "lr_final", "must be positive")
-        _check(self.steps is None or self.steps >= 0, where, "steps", "must be >= 0")
-        _check(self.minutes is None or self.minutes >= 0, where, "minutes", "must be >= 0")
-        _check(
-            self.distortion_weight is None or self.distortion_weight >= 0,
-            where,
-            "distortion_weight",
-            "must be >= 0",
-        )
-        _check(self.checkpoint_every_steps >= 0, where, "checkpoint_every_steps", "must be >= 0")
-        _check(self.eval_scale > 0, where, "eval_scale", "must be positive")
-        _check(
-            self.chunk >= 1 and self.log_every >= 1, where, "chunk/log_every", "must be positive"
-        )
+        if self.adam_betas is not None:
+            _check(
+                len(self.adam_betas) == 2 and all(0.0 <= b < 1.0 for b in self.adam_betas),
+                where,
+                "adam_betas",
+                f"must be two numbers in [0, 1), got {self.adam_betas}",
+            )
+        parse_options(self.backend, self.backend_options, f"{where} backend_options")
         return self
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:
@@ -395,12 +418,13 @@ class TrainConfig:
             # ~256k samples per step on a GPU (DESIGN §4); a 2-core CPU needs small batches.
             c.rays_per_step = 8192 if str(device).startswith("cuda") else 512
             c.rays_per_step = max(c.rays_per_step, c.windows_per_step)
+        b = backends.backend(c.backend)
         if c.lr is None:
-            c.lr = BACKEND_LR[c.backend]
+            c.lr = b.lr
         if c.adam_betas is None:
-            c.adam_betas = [0.9, 0.99] if c.backend == "ngp" else [0.9, 0.999]
+            c.adam_betas = list(b.adam_betas)
         if c.adam_eps is None:
-            c.adam_eps = 1e-15 if c.backend == "ngp" else 1e-8
+            c.adam_eps = b.adam_eps
         if c.steps is None and c.minutes is None:
             c.minutes = 1.0
         c.device = str(device)
@@ -470,8 +494,7 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
     """
     if name not in TRAIN_PRESETS:
         raise InputError(f"unknown preset {name!r} (choose from {sorted(TRAIN_PRESETS)})")
-    if backend not in BACKEND_LR:
-        raise InputError(f"unknown backend {backend!r} (choose ngp or vanilla)")
+    lr = backends.backend(backend).lr
     values = dict(TRAIN_PRESETS[name])
     ratio = values.pop("lr_final_ratio", None)
     values.update({k: v for k, v in overrides.items() if v is not None})
@@ -481,12 +504,12 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
         raise InputError(f"unknown training option(s) {unknown}")
     cfg = TrainConfig(backend=backend, preset=name, **values)
     if cfg.lr is None:
-        cfg.lr = BACKEND_LR[backend]
+        cfg.lr = lr
     if ratio is not None and overrides.get("lr_final") is None:
         cfg.lr_final = cfg.lr * ratio
     if overrides.get("minutes") is not None and overrides.get("steps") is None:
         cfg.steps = None  # a time budget replaces the preset's step count
-    if backend == "ngp" and "cone_angle" not in (cfg.backend_options or {}):
+    if backend == "ngp" and get_option(backend, cfg.backend_options, "cone_angle") is None:
         # written into the run's config, so a resume with another budget keeps the same marching
         cfg.backend_options = {
             **(cfg.backend_options or {}),

@@ -63,26 +63,6 @@ def event_loss(
     return torch.mean((pred - target.float()) ** 2)
 
 
-def distortion_loss(
-    weights: torch.Tensor, t_mid: torch.Tensor, delta: torch.Tensor
-) -> torch.Tensor:
-    """mip-NeRF 360 distortion regulariser, mean over rays, in O(S) per ray.
-
-    weights, t_mid, delta: (R, S) compositing weights, interval midpoints and widths along each
-    ray, sorted by t_mid, in normalised ray distance (so the value does not depend on scale).
-        sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 delta_i
-    The double sum is 2 sum_i w_i (m_i W_{<i} - (w m)_{<i}) with exclusive prefix sums.
-    """
-    dt = torch.promote_types(weights.dtype, torch.float32)  # bf16 under autocast -> float32
-    w, m, delta = weights.to(dt), t_mid.to(dt), delta.to(dt)
-    wm = w * m
-    w_before = torch.cumsum(w, -1) - w
-    wm_before = torch.cumsum(wm, -1) - wm
-    bi = 2.0 * (w * (m * w_before - wm_before)).sum(-1)
-    uni = (w**2 * delta).sum(-1) / 3.0
-    return (bi + uni).mean()
-
-
 def total_loss(
     out: dict,
     target: torch.Tensor,

@@ -1,4 +1,5 @@
-"""Shared Warp plumbing: initialisation, device mapping, zero-copy tensor views."""
+"""Shared Warp plumbing: initialisation, device mapping, zero-copy tensor views, and THE way a
+kernel is launched (`launch`): every op in this package goes through it."""
 
 from __future__ import annotations
 
@@ -22,14 +23,6 @@ def device_of(t: torch.Tensor) -> str:
     if t.device.type == "cuda":
         return f"cuda:{t.device.index or 0}"
     return "cpu"
-
-
-def to_wp(t: torch.Tensor, dtype=None, requires_grad: bool = False) -> wp.array:
-    """Zero-copy Warp view of a contiguous torch tensor (no gradient tracking by Warp)."""
-    init()
-    if not t.is_contiguous():
-        raise ValueError("to_wp needs a contiguous tensor")
-    return wp.from_torch(t, dtype=dtype, requires_grad=requires_grad)
 
 
 def stream_of(t: torch.Tensor):
@@ -104,3 +97,15 @@ class Launcher:
                 cmd.set_param_at_index(i, a)
             cmd.set_dim(dim)
         cmd.launch(fast_stream(t))
+
+
+def launch(kernel, dim: int, like: torch.Tensor, args: list) -> None:
+    """Launch `kernel` over `dim` threads on `like`'s device and current stream.
+
+    args: the kernel's parameters in order (inputs, then outputs); a torch tensor becomes a
+    cached zero-copy view with its scalar dtype, so pass `fast_view(t, wp.vec3)` where the
+    kernel wants a vector type. dim 0 launches nothing.
+    """
+    if dim <= 0:
+        return
+    launcher(kernel)(dim, like, [fast_view(a) if isinstance(a, torch.Tensor) else a for a in args])

@@ -29,7 +29,7 @@ import functools
 import torch
 import warp as wp
 
-from .common import device_of, init, stream_of
+from .common import fast_view, init, launch
 
 T_MIN = 1e-4
 """Transmittance below which a ray stops (instant-ngp's early termination)."""
@@ -37,8 +37,6 @@ T_MIN = 1e-4
 # Every output buffer comes from here, so a test can hand out poisoned memory and check
 # that the kernels write every element.
 _empty = torch.empty
-# Zero-copy descriptors (not wp.array objects): a third of the per-launch Python cost.
-_arr = functools.partial(wp.from_torch, requires_grad=False, return_ctype=True)
 
 
 @wp.func
@@ -200,27 +198,24 @@ class _Composite(torch.autograd.Function):
         n_used = _empty(R, dtype=torch.int32, device=dev)
         bg = _bg_vec(background)
         if R > 0:
-            wp.launch(
+            launch(
                 _composite_fwd,
-                dim=R,
-                inputs=[
-                    _arr(sigmas),
-                    _arr(rgbs, dtype=wp.vec3),
-                    _arr(t_starts),
-                    _arr(t_ends),
-                    _arr(packed_info, dtype=wp.vec2i),
+                R,
+                sigmas,
+                [
+                    sigmas,
+                    fast_view(rgbs, wp.vec3),
+                    t_starts,
+                    t_ends,
+                    fast_view(packed_info, wp.vec2i),
                     bg,
                     T_MIN,
+                    weights,
+                    fast_view(rgb, wp.vec3),
+                    depth,
+                    opacity,
+                    n_used,
                 ],
-                outputs=[
-                    _arr(weights),
-                    _arr(rgb, dtype=wp.vec3),
-                    _arr(depth),
-                    _arr(opacity),
-                    _arr(n_used),
-                ],
-                device=device_of(sigmas),
-                stream=stream_of(sigmas),
             )
         ctx.bg = bg
         ctx.save_for_backward(
@@ -248,29 +243,29 @@ class _Composite(torch.autograd.Function):
         grad_sigmas = _empty(S, dtype=torch.float32, device=dev)
         grad_rgbs = _empty(S, 3, dtype=torch.float32, device=dev)
         if R > 0:
-            wp.launch(
+            launch(
                 _composite_bwd_kernel(has_gw),
-                dim=R,
-                inputs=[
-                    _arr(sigmas),
-                    _arr(rgbs, dtype=wp.vec3),
-                    _arr(t_starts),
-                    _arr(t_ends),
-                    _arr(packed_info, dtype=wp.vec2i),
+                R,
+                sigmas,
+                [
+                    sigmas,
+                    fast_view(rgbs, wp.vec3),
+                    t_starts,
+                    t_ends,
+                    fast_view(packed_info, wp.vec2i),
                     ctx.bg,
-                    _arr(n_used),
-                    _arr(weights),
-                    _arr(rgb, dtype=wp.vec3),
-                    _arr(depth),
-                    _arr(opacity),
-                    _arr(g_rgb, dtype=wp.vec3),
-                    _arr(g_depth),
-                    _arr(g_opacity),
-                    _arr(g_weights),
+                    n_used,
+                    weights,
+                    fast_view(rgb, wp.vec3),
+                    depth,
+                    opacity,
+                    fast_view(g_rgb, wp.vec3),
+                    g_depth,
+                    g_opacity,
+                    g_weights,
+                    grad_sigmas,
+                    fast_view(grad_rgbs, wp.vec3),
                 ],
-                outputs=[_arr(grad_sigmas), _arr(grad_rgbs, dtype=wp.vec3)],
-                device=device_of(sigmas),
-                stream=stream_of(sigmas),
             )
         elif S > 0:
             grad_sigmas.zero_()
@@ -396,18 +391,18 @@ class _Distortion(torch.autograd.Function):
         loss = _empty(R, dtype=torch.float32, device=dev)
         totals = _empty(R, 2, dtype=torch.float32, device=dev)
         if R > 0:
-            wp.launch(
+            launch(
                 _distortion_fwd,
-                dim=R,
-                inputs=[
-                    _arr(weights),
-                    _arr(t_starts),
-                    _arr(t_ends),
-                    _arr(packed_info, dtype=wp.vec2i),
+                R,
+                weights,
+                [
+                    weights,
+                    t_starts,
+                    t_ends,
+                    fast_view(packed_info, wp.vec2i),
+                    loss,
+                    fast_view(totals, wp.vec2),
                 ],
-                outputs=[_arr(loss), _arr(totals, dtype=wp.vec2)],
-                device=device_of(weights),
-                stream=stream_of(weights),
             )
         ctx.save_for_backward(weights, t_starts, t_ends, packed_info, totals)
         return loss
@@ -418,20 +413,19 @@ class _Distortion(torch.autograd.Function):
         R = packed_info.shape[0]
         grad = _empty(weights.shape[0], dtype=torch.float32, device=weights.device)
         if R > 0:
-            wp.launch(
+            launch(
                 _distortion_bwd,
-                dim=R,
-                inputs=[
-                    _arr(weights),
-                    _arr(t_starts),
-                    _arr(t_ends),
-                    _arr(packed_info, dtype=wp.vec2i),
-                    _arr(totals, dtype=wp.vec2),
-                    _arr(g_loss.detach().float().contiguous()),
+                R,
+                weights,
+                [
+                    weights,
+                    t_starts,
+                    t_ends,
+                    fast_view(packed_info, wp.vec2i),
+                    fast_view(totals, wp.vec2),
+                    g_loss.detach().float().contiguous(),
+                    grad,
                 ],
-                outputs=[_arr(grad)],
-                device=device_of(weights),
-                stream=stream_of(weights),
             )
         elif weights.shape[0] > 0:
             grad.zero_()

@@ -14,7 +14,7 @@ A pixel id outside [0, H*W) gives n = n_pos = −1 and E = NaN instead of readin
 import torch
 import warp as wp
 
-from .common import fast_view, init, launcher
+from .common import fast_view, init, launch
 
 init()
 
@@ -123,7 +123,7 @@ def window_counts(offsets, times, cum_pos, pix, t0, t1) -> tuple[torch.Tensor, t
     n_pos = torch.empty_like(n)
     if pix.shape[0]:
         args = _prepare(offsets, times, cum_pos, pix, t0, t1) + [fast_view(n), fast_view(n_pos)]
-        launcher(_window_counts_kernel)(pix.shape[0], pix, args)
+        launch(_window_counts_kernel, pix.shape[0], pix, args)
     return n, n_pos
 
 
@@ -148,5 +148,5 @@ def window_sum(
     ]
     if pix.shape[0]:
         args = _prepare(offsets, times, cum_pos, pix, t0, t1) + weights + [fast_view(e)]
-        launcher(_window_sum_kernel)(pix.shape[0], pix, args)
+        launch(_window_sum_kernel, pix.shape[0], pix, args)
     return e

@@ -34,94 +34,20 @@ Host cost per op is ~60 µs (cached Warp views, recorded launches, cached stream
 
 import dataclasses
 import functools
-import math
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 import torch
 import warp as wp
 
-from .common import device_of, fast_view, init, launcher, stream_of, to_wp
+from .common import device_of, fast_view, init, launch
+from .gridconfig import HashGridConfig
 
 init()
 
 
 PRIME_Y = wp.constant(wp.uint32(2654435761))
 PRIME_Z = wp.constant(wp.uint32(805459861))
-
-
-@dataclass(frozen=True)
-class HashGridConfig:
-    """Hash-grid hyper-parameters (DESIGN §4); derived per-level layout as properties.
-
-    n_levels: L; n_features: F per level; log2_table_size: T = 2**k rows per hashed level;
-    base_resolution: N_min; max_resolution: N_max (2048 * scene scale in DESIGN).
-    """
-
-    n_levels: int = 16
-    n_features: int = 2
-    log2_table_size: int = 19
-    base_resolution: int = 16
-    max_resolution: int = 2048
-
-    def __post_init__(self):
-        if self.n_levels < 1 or self.n_features not in (1, 2, 4, 8):
-            raise ValueError(
-                f"HashGridConfig: bad levels/features {self.n_levels}/{self.n_features}"
-            )
-        if not 1 <= self.log2_table_size <= 30:
-            raise ValueError(f"HashGridConfig: log2_table_size {self.log2_table_size} not in 1..30")
-        if not 1 <= self.base_resolution <= self.max_resolution:
-            raise ValueError("HashGridConfig: need 1 <= base_resolution <= max_resolution")
-        if self.n_params * self.n_features >= 2**31:
-            raise ValueError("HashGridConfig: table too large for int32 indexing")
-
-    @cached_property
-    def table_size(self) -> int:
-        return 1 << self.log2_table_size
-
-    @cached_property
-    def growth(self) -> float:
-        """Per-level scale b."""
-        if self.n_levels == 1:
-            return 1.0
-        return math.exp(
-            (math.log(self.max_resolution) - math.log(self.base_resolution)) / (self.n_levels - 1)
-        )
-
-    @cached_property
-    def resolutions(self) -> tuple[int, ...]:
-        """N_l, cells per axis (the 1e-9 guards floor(2047.9999...) at the finest level)."""
-        b = self.growth
-        return tuple(
-            int(math.floor(self.base_resolution * b**lv + 1e-9)) for lv in range(self.n_levels)
-        )
-
-    @cached_property
-    def hashed(self) -> tuple[bool, ...]:
-        return tuple((n + 1) ** 3 > self.table_size for n in self.resolutions)
-
-    @cached_property
-    def level_sizes(self) -> tuple[int, ...]:
-        """Rows per level: T if hashed, else (N+1)^3 rounded up to a multiple of 8."""
-        return tuple(
-            self.table_size if h else -(-((n + 1) ** 3) // 8) * 8
-            for n, h in zip(self.resolutions, self.hashed, strict=True)
-        )
-
-    @cached_property
-    def level_offsets(self) -> tuple[int, ...]:
-        """First table row of each level, plus the total as the last entry (L + 1 values)."""
-        return tuple(int(v) for v in np.concatenate([[0], np.cumsum(self.level_sizes)]))
-
-    @cached_property
-    def n_params(self) -> int:
-        return self.level_offsets[-1]
-
-    @cached_property
-    def n_output_dims(self) -> int:
-        return self.n_levels * self.n_features
 
 
 def init_table(cfg: HashGridConfig, device="cpu", generator: torch.Generator | None = None):
@@ -462,12 +388,11 @@ def grid_indices(ijk: torch.Tensor, level: int, cfg: HashGridConfig) -> torch.Te
     ijk = ijk.to(torch.int32).contiguous()
     dev = device_of(ijk)
     out = torch.empty(ijk.shape[0], dtype=torch.int64, device=ijk.device)
-    wp.launch(
+    launch(
         _grid_index_kernel,
-        dim=ijk.shape[0],
-        device=dev,
-        stream=stream_of(ijk),
-        inputs=[to_wp(ijk, dtype=wp.vec3i), _levels_wp(cfg, dev), int(level), to_wp(out)],
+        ijk.shape[0],
+        ijk,
+        [fast_view(ijk, wp.vec3i), _levels_wp(cfg, dev), int(level), out],
     )
     return out
 
@@ -488,7 +413,8 @@ def _launch_forward(x, table, cfg: HashGridConfig, variant: _Variant, storage: t
         variant = dataclasses.replace(variant, pairs=False)  # 16-byte loads need alignment
     fwd, _, _ = variant.kernels(F)
     if n:
-        launcher(fwd)(
+        launch(
+            fwd,
             n * L,
             x,
             [
@@ -530,7 +456,8 @@ class _HashGridEncode(torch.autograd.Function):
         if ctx.needs_input_grad[1]:
             grad_table = torch.zeros_like(table)
             if n:
-                launcher(bwd_table)(
+                launch(
+                    bwd_table,
                     variant.backward_threads(n, L),
                     x,
                     [
@@ -545,7 +472,8 @@ class _HashGridEncode(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             grad_x = torch.empty_like(x)
             if n:
-                launcher(bwd_x)(
+                launch(
+                    bwd_x,
                     n,
                     x,
                     [

@@ -31,11 +31,10 @@ import math
 import torch
 import warp as wp
 
-from .common import device_of, init, stream_of
+from .common import fast_view, init, launch
 
 _empty = torch.empty
 # Zero-copy descriptors (not wp.array objects): a third of the per-launch Python cost.
-_arr = functools.partial(wp.from_torch, requires_grad=False, return_ctype=True)
 
 
 def default_step_size(aabb) -> float:
@@ -321,14 +320,7 @@ class OccupancyGrid:
 
     def _launch(self, kernel, dim, inputs, outputs):
         if dim > 0:
-            wp.launch(
-                kernel,
-                dim=dim,
-                inputs=[_arr(x) if isinstance(x, torch.Tensor) else x for x in inputs],
-                outputs=[_arr(x.view(-1)) for x in outputs],
-                device=device_of(self.density),
-                stream=stream_of(self.density),
-            )
+            launch(kernel, dim, self.density, [*inputs, *[x.view(-1) for x in outputs]])
 
     def _pack(self) -> None:
         self._launch(
@@ -343,13 +335,8 @@ class OccupancyGrid:
         ids = ids.to(device=self.device, dtype=torch.int32).contiguous()
         pts = _empty(ids.shape[0], 3, dtype=torch.float32, device=self.device)
         if ids.shape[0] > 0:
-            wp.launch(
-                _cell_points,
-                dim=ids.shape[0],
-                inputs=[_arr(ids), seed, *self._geom()],
-                outputs=[_arr(pts, dtype=wp.vec3)],
-                device=device_of(pts),
-                stream=stream_of(pts),
+            launch(
+                _cell_points, ids.shape[0], pts, [ids, seed, *self._geom(), fast_view(pts, wp.vec3)]
             )
         return pts
 
@@ -358,19 +345,18 @@ class OccupancyGrid:
         x = x.to(device=self.device, dtype=torch.float32).contiguous()
         out = _empty(x.shape[0], dtype=torch.uint8, device=self.device)
         if x.shape[0] > 0:
-            wp.launch(
+            launch(
                 _lookup_kernel(self.n_cascades),
-                dim=x.shape[0],
-                inputs=[
-                    _arr(x, dtype=wp.vec3),
+                x.shape[0],
+                out,
+                [
+                    fast_view(x, wp.vec3),
                     self.center,
                     self.inv_half,
                     self.resolution,
-                    _arr(self.bitfield),
+                    self.bitfield,
+                    out,
                 ],
-                outputs=[_arr(out)],
-                device=device_of(out),
-                stream=stream_of(out),
             )
         return out.bool()
 
@@ -432,11 +418,12 @@ class OccupancyGrid:
         c2ws = torch.as_tensor(c2ws, dtype=torch.float64).reshape(-1, 4, 4)
         w2c = torch.linalg.inv(c2ws).float().to(self.device).contiguous()
         fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-        wp.launch(
+        launch(
             _mark_unseen,
-            dim=self.n_cells,
-            inputs=[
-                _arr(w2c, dtype=wp.mat44),
+            self.n_cells,
+            self.density,
+            [
+                fast_view(w2c, wp.mat44),
                 fx,
                 fy,
                 cx,
@@ -445,10 +432,8 @@ class OccupancyGrid:
                 float(height),
                 float(near),
                 *self._geom(),
+                self.density.view(-1),
             ],
-            outputs=[_arr(self.density.view(-1))],
-            device=device_of(self.density),
-            stream=stream_of(self.density),
         )
         self._pack()
 

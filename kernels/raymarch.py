@@ -34,12 +34,10 @@ import math
 import torch
 import warp as wp
 
-from .common import device_of, init, stream_of
+from .common import fast_view, init, launch
 from .occupancy import OccupancyGrid, bit_at, cell_lo, cell_size, default_step_size, locate_func
 
 _empty = torch.empty
-# Zero-copy descriptors (not wp.array objects): a third of the per-launch Python cost.
-_arr = functools.partial(wp.from_torch, requires_grad=False, return_ctype=True)
 
 _PARALLEL = 1e-12  # |d_k| below this: the ray is parallel to the slab (avoids 0 * inf = NaN)
 
@@ -343,20 +341,20 @@ def ray_aabb(
     t_near = _empty(R, dtype=torch.float32, device=rays_o.device)
     t_far = _empty(R, dtype=torch.float32, device=rays_o.device)
     if R > 0:
-        wp.launch(
+        launch(
             _ray_aabb,
-            dim=R,
-            inputs=[
-                _arr(rays_o, dtype=wp.vec3),
-                _arr(rays_d, dtype=wp.vec3),
+            R,
+            rays_o,
+            [
+                fast_view(rays_o, wp.vec3),
+                fast_view(rays_d, wp.vec3),
                 wp.vec3(*a[:3]),
                 wp.vec3(*a[3:]),
                 float(near),
                 1e30 if far is None else float(far),
+                t_near,
+                t_far,
             ],
-            outputs=[_arr(t_near), _arr(t_far)],
-            device=device_of(rays_o),
-            stream=stream_of(rays_o),
         )
     return t_near, t_far
 
@@ -443,12 +441,12 @@ def march_rays(
             raise ValueError(f"jitter must be ({R},), got {tuple(jitter.shape)}")
     if grid is not None:
         kernel = _march_kernel(grid.n_cascades, grid.cylinder is not None)
-        geom = [grid.center, grid.half, grid.inv_half, grid.resolution, _arr(grid.bitfield)]
+        geom = [grid.center, grid.half, grid.inv_half, grid.resolution, grid.bitfield]
         cyl = wp.vec3(*grid.cylinder) if grid.cylinder is not None else wp.vec3(0.0)
     else:
         kernel = _march_kernel(0, False)
         dummy = torch.zeros(1, dtype=torch.uint8, device=dev)
-        geom = [wp.vec3(0.0), wp.vec3(1.0), wp.vec3(1.0), 2, _arr(dummy)]
+        geom = [wp.vec3(0.0), wp.vec3(1.0), wp.vec3(1.0), 2, dummy]
         cyl = wp.vec3(0.0)
     if segments is None:
         # Measured on an H100 (shell scene, 128^3): 4096 rays 1.35 -> 0.95 ms with 8 segments,
@@ -463,8 +461,8 @@ def march_rays(
     f0 = torch.zeros(0, device=dev)
     i0 = torch.zeros(0, dtype=torch.int32, device=dev)
     head = [
-        _arr(rays_o, dtype=wp.vec3),
-        _arr(rays_d, dtype=wp.vec3),
+        fast_view(rays_o, wp.vec3),
+        fast_view(rays_d, wp.vec3),
         wp.vec3(*box[:3]),
         wp.vec3(*box[3:]),
         float(near),
@@ -472,20 +470,13 @@ def march_rays(
         rule,
         *geom,
         cyl,
-        _arr(jit),
+        jit,
         int(jitter is not None),
         int(max_samples),
         n_seg,
     ]
-    launch = functools.partial(wp.launch, kernel, dim=R * n_seg, device=device_of(rays_o))
-    stream = stream_of(rays_o)
     si0 = torch.zeros(0, 2, dtype=torch.int32, device=dev)
-    if R > 0:
-        launch(
-            inputs=head + [0],
-            outputs=[_arr(counts), _arr(si0, dtype=wp.vec2i), _arr(f0), _arr(f0), _arr(i0)],
-            stream=stream,
-        )
+    launch(kernel, R * n_seg, rays_o, [*head, 0, counts, fast_view(si0, wp.vec2i), f0, f0, i0])
     if n_seg > 1:
         # the cap keeps each ray's nearest samples: segment j gets what is left of it
         incl = torch.cumsum(counts.view(R, n_seg), 1, dtype=torch.int32).clamp_(max=max_samples)
@@ -502,14 +493,9 @@ def march_rays(
     ray_indices = _empty(S, dtype=torch.int32, device=dev)
     if S > 0:
         launch(
-            inputs=head + [1],
-            outputs=[
-                _arr(counts),
-                _arr(seg_info, dtype=wp.vec2i),
-                _arr(t_starts),
-                _arr(t_ends),
-                _arr(ray_indices),
-            ],
-            stream=stream,
+            kernel,
+            R * n_seg,
+            rays_o,
+            [*head, 1, counts, fast_view(seg_info, wp.vec2i), t_starts, t_ends, ray_indices],
         )
     return packed_info, t_starts, t_ends, ray_indices

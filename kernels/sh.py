@@ -8,7 +8,7 @@ normalisation happens here: the backward is the plain Jacobian of the polynomial
 import torch
 import warp as wp
 
-from .common import fast_view, init, launcher
+from .common import fast_view, init, launch
 
 init()
 
@@ -97,7 +97,7 @@ class _SHEncode(torch.autograd.Function):
         # thread would scatter 4-byte stores 64 bytes apart); returned as its (N, 16) view.
         storage = torch.empty(N_COEFFS, d.shape[0], dtype=torch.float32, device=d.device)
         if d.shape[0]:
-            launcher(_sh_forward)(d.shape[0], d, [fast_view(d, wp.vec3), fast_view(storage)])
+            launch(_sh_forward, d.shape[0], d, [fast_view(d, wp.vec3), fast_view(storage)])
         ctx.save_for_backward(d)
         return storage.t()
 
@@ -108,8 +108,11 @@ class _SHEncode(torch.autograd.Function):
         grad_d = torch.empty_like(d)
         if d.shape[0]:
             g = grad_out.contiguous() if 0 in grad_out.stride() else grad_out  # any strides
-            launcher(_sh_backward)(
-                d.shape[0], d, [fast_view(d, wp.vec3), fast_view(g), fast_view(grad_d, wp.vec3)]
+            launch(
+                _sh_backward,
+                d.shape[0],
+                d,
+                [fast_view(d, wp.vec3), fast_view(g), fast_view(grad_d, wp.vec3)],
             )
         return grad_d
 

@@ -254,7 +254,7 @@ def test_knobs_two_variants(tiny_scene, tmp_path):
     assert any(r["pareto"] for r in rows.values())
     # dt_min x2 was resolved against the box: its run really used twice the step
     cfg = json.loads((out / "runs" / "dt_min_x2" / "config.json").read_text())
-    assert cfg["field"]["options"]["dt_min"] == pytest.approx(0.04)
+    assert cfg["field"]["options"]["marcher"]["dt_min"] == pytest.approx(0.04)
     assert iio.imread(out / "knobs.png").ndim == 3
     md = (out / "knobs.md").read_text()
     assert "**default**" in md and "dt_min_x2" in md and "CPU numbers" in md

@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import torch
 
+from fastenerf.backends import BACKEND_NAMES as BACKENDS
+from fastenerf.backends import parse_options
 from fastenerf.clip import cylinder_mask
 from fastenerf.config import CylinderConfig, TrainConfig
 from fastenerf.fields import field_from_config, make_field
@@ -21,7 +23,6 @@ from fastenerf.fields import ngp as ngp_mod
 from fastenerf.fields.ngp import trunc_exp
 from fastenerf.kernels.hashgrid import grid_indices
 
-BACKENDS = ("ngp", "vanilla")
 SMALL = {
     "ngp": dict(
         n_levels=8,
@@ -463,9 +464,11 @@ def test_new_ngp_field_is_a_fog_of_fixed_optical_depth_at_any_scale():
             depth = f.density(x) * (2 * scale)
         assert torch.allclose(depth, torch.full_like(depth, ngp_mod.INIT_OPTICAL_DEPTH), rtol=0.05)
         conf = f.config_dict()
-        assert conf["options"]["density_bias"] == pytest.approx(math.log(4.5 / scale))
+        assert conf["options"]["network"]["density_bias"] == pytest.approx(math.log(4.5 / scale))
         assert ngp_mod.from_config(conf, device="cpu").options == f.options
-    conf["options"].pop("density_bias")
-    assert ngp_mod.from_config(conf, device="cpu").options.density_bias == 0.0
-    fixed = ngp_mod.NGPField(aabb, ngp_mod.NGPOptions(density_bias=-1.0), device="cpu")
-    assert fixed.options.density_bias == -1.0
+    # a run saved before density_bias existed (flat options without it) was trained without one
+    old = {"aabb": aabb, "options": {"hidden": 64}, "cylinder": None}
+    assert ngp_mod.from_config(old, device="cpu").options.network.density_bias == 0.0
+    opts = parse_options("ngp", {"network": {"density_bias": -1.0}})
+    fixed = ngp_mod.NGPField(aabb, opts, device="cpu")
+    assert fixed.options.network.density_bias == -1.0

@@ -371,10 +371,11 @@ def test_cli_train_resume_eval_render(tiny_scene, tmp_path, capsys):
 
 
 def test_vanilla_rays_that_miss_graze_or_start_inside():
+    from fastenerf.backends import VanillaOptions
     from fastenerf.fields.vanilla import VanillaField, sample_pdf
 
     torch.manual_seed(0)
-    field = VanillaField([-1, -1, -1, 1, 1, 1], **VANILLA_TINY)
+    field = VanillaField([-1, -1, -1, 1, 1, 1], VanillaOptions(**VANILLA_TINY))
     o = torch.tensor([[0, 0, -3.0], [0, 3, -3.0], [1.0, 0, -3.0], [0, 0, 0.0], [0, 0, -3.0]])
     d = torch.tensor([[0, 0, 1.0], [0, 0, 1.0], [0, 0, 1.0], [1.0, 0, 0], [1.0, 0, 0]])
     bg = torch.tensor([0.2, 0.4, 0.6])
@@ -396,13 +397,14 @@ def test_vanilla_rays_that_miss_graze_or_start_inside():
 
 
 def test_vanilla_huge_density_keeps_gradients_finite():
-    from fastenerf.fields.vanilla import composite
+    from fastenerf.fields.vanilla import composite_dense
 
     sigma = torch.tensor([[0.0, 1e6, 1e6, 5.0]], requires_grad=True)
     rgb = torch.rand(1, 4, 3, requires_grad=True)
     t = torch.tensor([[0.1, 0.2, 0.2, 0.5]])  # a zero-length interval too
     delta = torch.tensor([[0.1, 0.0, 0.3, 0.5]])
-    w, c, depth, opa = composite(sigma, rgb, t, delta)
+    out = composite_dense(sigma, rgb, t, delta)
+    c, depth, opa = out["rgb"], out["depth"], out["opacity"]
     assert float(opa.detach()) == pytest.approx(1.0, abs=1e-5)
     (c.sum() + depth.sum()).backward()
     assert torch.isfinite(sigma.grad).all() and torch.isfinite(rgb.grad).all()

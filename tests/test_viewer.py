@@ -541,10 +541,12 @@ def test_train_while_viewing_then_view_the_run(tmp_path):
 
 
 def test_occupancy_mode_reads_the_ngp_grid():
-    from fastenerf.fields.ngp import NGPField, NGPOptions
+    from fastenerf.backends import parse_options
+    from fastenerf.fields.ngp import NGPField
     from fastenerf.viewer.frame import ViewSettings, render_raw
 
-    f = NGPField([-1, -1, -1, 1, 1, 1], NGPOptions(log2_table_size=12, grid_resolution=16))
+    opts = parse_options("ngp", {"log2_table_size": 12, "grid_resolution": 16})
+    f = NGPField([-1, -1, -1, 1, 1, 1], opts)
     g = f.grid
     # one grid update with a density that is non-zero in one cell only, [0, 1/8]^3
     centre = torch.tensor([[0.0625, 0.0625, 0.0625]])

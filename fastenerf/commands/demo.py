@@ -62,10 +62,12 @@ CPU_TRAIN = {
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from ..backends import BACKEND_NAMES
+
     p.add_argument("--out", metavar="DIR", required=True, help="demo folder to write")
     p.add_argument(
         "--backend",
-        choices=["ngp", "vanilla"],
+        choices=list(BACKEND_NAMES),
         default=None,
         help="field backend (default: ngp on a GPU, vanilla on a CPU)",
     )

@@ -66,7 +66,7 @@ def check_eval_outputs(args: argparse.Namespace) -> None:
 def check_render_memory(run_dir, scale: float, views: int, command: str) -> None:
     """Refuse (`check_memory`) `views` renders at `scale` x the run's sensor that cannot fit."""
     from ..memory import check_memory, image_bytes
-    from ..train import read_run_config
+    from ..run import read_run_config
 
     sc = read_run_config(run_dir).get("scene")
     if isinstance(sc, dict) and all(

@@ -8,6 +8,8 @@ HELP = "interactive viewer of a run (or of a model training live); headless snap
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from ..backends import BACKEND_NAMES
+
     p.add_argument("run", nargs="?", metavar="RUN_DIR", help="a run folder (trained or training)")
     p.add_argument(
         "--train",
@@ -16,7 +18,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--backend",
-        choices=["ngp", "vanilla"],
+        choices=list(BACKEND_NAMES),
         default="ngp",
         help="field backend with --train (default ngp)",
     )

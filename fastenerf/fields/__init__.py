@@ -1,6 +1,7 @@
 """Field backends behind one interface (`fields.base.Field`), chosen by name.
 
-A backend is a module `fastenerf.fields.<name>` exposing
+The backend names are `fastenerf.backends.BACKENDS` (the one registry); a backend is a module
+`fastenerf.fields.<name>` exposing
     build(scene: SceneConfig, cfg: TrainConfig) -> Field   a new field for a scene
     from_config(config: dict) -> Field                     rebuild from `Field.config_dict()`
 Modules are imported lazily, so the vanilla path works without the ngp kernels.
@@ -11,18 +12,27 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
+from ..backends import BACKEND_NAMES
+from ..backends import backend as registry_entry
 from ..errors import InputError
 from .base import Field, RenderOutput
 
-BACKENDS = ("ngp", "vanilla")
+BACKENDS = BACKEND_NAMES  # the registry's names (fastenerf.backends)
 
-__all__ = ["BACKENDS", "Field", "RenderOutput", "backend_module", "field_from_config", "make_field"]
+__all__ = [
+    "BACKENDS",
+    "Field",
+    "RenderOutput",
+    "backend_module",
+    "canonical_field_config",
+    "field_from_config",
+    "make_field",
+]
 
 
-def backend_module(backend: str) -> ModuleType:
-    """The module implementing `backend`, or a one-line `InputError`."""
-    if backend not in BACKENDS:
-        raise InputError(f"unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+def backend_module(name: str) -> ModuleType:
+    """The module implementing backend `name`, or a one-line `InputError`."""
+    backend = registry_entry(name).name
     name = f"fastenerf.fields.{backend}"
     try:
         return importlib.import_module(name)
@@ -43,3 +53,10 @@ def make_field(backend: str, scene, cfg) -> Field:
 def field_from_config(backend: str, config: dict) -> Field:
     """Rebuild a field of `backend` from the `config_dict()` saved in a checkpoint."""
     return backend_module(backend).from_config(config)
+
+
+def canonical_field_config(backend: str, config: dict) -> dict:
+    """The `config_dict()` that `field_from_config(backend, config)` would give, without
+    building the field: older (flat) saved forms in today's form, for comparing a checkpoint's
+    field config with a new field's on resume."""
+    return backend_module(backend).canonical_config(config)

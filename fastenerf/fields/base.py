@@ -2,13 +2,16 @@
 
 A field owns its sampler (occupancy-grid marching for ngp, stratified + hierarchical for
 vanilla) because the two are inseparable from how each represents space; everything outside
-the field (losses, trainer, eval, viewer, mesh) sees only this interface.
+the field (losses, trainer, eval, viewer, mesh) sees only this interface, and may call every
+method of it on any field: the optional parts (`param_groups`, `observe_cameras`, `update`,
+`built`) have defaults here, so no caller probes with `hasattr`.
 """
 
 from __future__ import annotations
 
 from typing import TypedDict
 
+import numpy as np
 import torch
 
 from ..errors import InputError
@@ -54,25 +57,36 @@ class Field(torch.nn.Module):
         """
         raise NotImplementedError
 
-    def update(self, step: int) -> None:
-        """Per-step housekeeping (the ngp occupancy grid); a no-op by default."""
+    def config_dict(self) -> dict:
+        """What rebuilds this field (`fields.field_from_config`): {"aabb", "options" (the
+        backend's options dataclass as a dict), "cylinder" (CylinderConfig as a dict or None)},
+        saved in checkpoints."""
+        raise NotImplementedError
+
+    # -- optional parts: the defaults below make every call safe on any field ----------------
 
     def param_groups(self) -> list[dict]:
-        """Optimiser parameter groups (a group may set its own "lr"); default: one group of
-        every trainable parameter."""
+        """Optimiser parameter groups (torch.optim style dicts with "params" and optional
+        "lr"); default: one group of every trainable parameter at the run's learning rate."""
         return [{"params": [p for p in self.parameters() if p.requires_grad]}]
 
-    def observe_cameras(self, K, c2w, width: int, height: int, near: float) -> None:
-        """Tell the field which space the training cameras see, K (3, 3) pixels, c2w (M, 4, 4)
-        OpenCV camera-to-world (ngp keeps space no camera sees empty); a no-op by default."""
+    def observe_cameras(
+        self, K: np.ndarray, c2ws: np.ndarray, width: int, height: int, near: float = 0.0
+    ) -> None:
+        """Learn which space the training cameras see (ngp: cells no camera sees stay empty).
+
+        K: (3, 3) pinhole intrinsics in pixels; c2ws: (M, 4, 4) OpenCV camera-to-world;
+        width, height: image size in pixels; near: world units. A no-op by default.
+        """
+
+    def update(self, step: int) -> None:
+        """Per-step housekeeping before training step `step` (the ngp occupancy grid); a no-op
+        by default."""
 
     def built(self) -> dict:
-        """The parts of the field this scene switched on (saved in the run's config.json)."""
+        """Which optional parts this field runs, {name: bool} (for RUN/config.json); {} by
+        default."""
         return {}
-
-    def config_dict(self) -> dict:
-        """The constructor arguments, saved in checkpoints so a run can rebuild its field."""
-        raise NotImplementedError
 
 
 def check_points(name: str, v: torch.Tensor, where: str) -> None:

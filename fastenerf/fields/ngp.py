@@ -13,71 +13,34 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 from torch.profiler import record_function
 
-from ..clip import clip_density
+from ..backends import NGPOptions, parse_options
+from ..clip import clip_aabb, clip_density
 from ..config import CylinderConfig, SceneConfig
 from ..errors import InputError
 from ..kernels.composite import composite, distortion_loss
-from ..kernels.hashgrid import HashGridConfig, hash_grid_encode, init_table
+from ..kernels.hashgrid import hash_grid_encode, init_table
 from ..kernels.occupancy import OccupancyGrid
 from ..kernels.raymarch import march_rays
 from ..kernels.sh import sh_encode
 from .base import Field, RenderOutput, check_points
-
-
-@dataclass
-class NGPOptions:
-    """Accuracy/speed knobs of the ngp backend (`TrainConfig.backend_options`)."""
-
-    n_levels: int = 16
-    n_features: int = 2
-    log2_table_size: int = 19
-    base_resolution: int = 16
-    max_resolution: int = 2048  # N_max = 2048 · scale for a unit-sized box (DESIGN §4)
-    hidden: int = 64
-    geo_features: int = 15
-    grid_resolution: int = 128
-    # 1/256 here (fields built without a training budget); `train_preset` picks it by budget
-    # (`config.ngp_cone_for_budget`): 1/256 is on the knob study's Pareto front at 25 s (+4.7 dB,
-    # 0.6x the time per step of 0), level at 60 s, but caps near 29 dB on `blocks` where constant
-    # steps (0) reach 32.6 dB in 5 min (benchmarks/RESULTS.md).
-    cone_angle: float = 1.0 / 256
-    dt_min: float | None = None  # None: √3/1024 · box size (DESIGN §4)
-    max_samples: int = 1024
-    density_threshold: float = 0.01
-    grid_decay: float = 0.95
-    update_every: int = 16
-    warmup_steps: int = 256
-    # σ = exp(MLP logit + density_bias), so a new field is a uniform fog of σ ≈ e^bias. None:
-    # the fog's optical depth across the box (mean side) is INIT_OPTICAL_DEPTH, whatever the
-    # scene's scale. nerfacc and nerfstudio start nearly transparent (bias −1); under event
-    # supervision that stalls colour for hundreds of steps (geometry forms semi-transparent,
-    # colours saturate to make up the contrast), while a fog to carve does not (RESULTS.md).
-    density_bias: float | None = None
-    # The truncated exp: σ ≤ e^15 ≈ 3.3e6 (DESIGN §5's range), computed in float32 whatever the
-    # MLP's autocast dtype (e^15 would overflow fp16, whose max is 65504).
-    max_log_density: float = 15.0
-
-    @classmethod
-    def from_dict(cls, d: dict) -> NGPOptions:
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise InputError(f"unknown ngp backend option(s) {unknown}; known: {sorted(names)}")
-        return cls(**d)
-
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
 # background shows through. On `blocks` (mean box side 1.22; CPU, 116×87, 2048 rays/step, 300
 # steps): depth ≈ 1.2 (bias 0) 17.5 dB, ≈ 3.3 (bias 1) 17.9 dB, ≈ 9 (bias 2) 21.4 dB, ≈ 24.5
 # (bias 3) 21.1 dB with twice the samples per ray.
 INIT_OPTICAL_DEPTH = 9.0
+
+
+def _fog_bias(aabb) -> float:
+    """density_bias giving a fog of optical depth INIT_OPTICAL_DEPTH across the box's mean side."""
+    box = np.asarray(aabb, dtype=np.float64)
+    return math.log(INIT_OPTICAL_DEPTH / float(np.mean(box[3:] - box[:3])))
 
 
 class _TruncExp(torch.autograd.Function):
@@ -141,28 +104,27 @@ class NGPField(Field):
         # need not have Warp's CPU compiler. None: CUDA when there is one.
         device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
         opt = options or NGPOptions()
-        if opt.density_bias is None:
-            box = np.asarray(aabb, dtype=np.float64)
-            extent = float(np.mean(box[3:] - box[:3]))
-            opt = dataclasses.replace(opt, density_bias=math.log(INIT_OPTICAL_DEPTH / extent))
+        net = opt.network
+        if net.density_bias is None:
+            net = dataclasses.replace(net, density_bias=_fog_bias(aabb))
+            opt = dataclasses.replace(opt, network=net)
         self.options = opt
         self.cylinder = cylinder
         self.register_buffer("aabb", torch.tensor(aabb, dtype=torch.float32))
-        self.grid_cfg = HashGridConfig(
-            opt.n_levels,
-            opt.n_features,
-            opt.log2_table_size,
-            opt.base_resolution,
-            opt.max_resolution,
-        )
+        self.grid_cfg = opt.encoding
         gen = torch.Generator().manual_seed(seed)
         self.table = nn.Parameter(init_table(self.grid_cfg, "cpu", generator=gen))
-        self.density_net = _mlp(self.grid_cfg.n_output_dims, opt.hidden, 1 + opt.geo_features, 1)
-        self.color_net = _mlp(opt.geo_features + 16, opt.hidden, 3, 2)
+        self.density_net = _mlp(self.grid_cfg.n_output_dims, net.hidden, 1 + net.geo_features, 1)
+        self.color_net = _mlp(net.geo_features + 16, net.hidden, 3, 2)
         cyl = None if cylinder is None else (cylinder.radius, cylinder.y_min, cylinder.y_max)
         # The grid's threshold is an optical thickness over one minimal step: the marcher's.
         self.grid = OccupancyGrid(
-            list(aabb), opt.grid_resolution, 1, cylinder=cyl, step_size=opt.dt_min, device=device
+            list(aabb),
+            opt.occupancy.grid_resolution,
+            1,
+            cylinder=cyl,
+            step_size=opt.marcher.dt_min,
+            device=device,
         )
         self.to(device)
 
@@ -210,8 +172,8 @@ class NGPField(Field):
         """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3)."""
         feats = hash_grid_encode(self._normalise(x.float()), self.table.float(), self.grid_cfg)
         h = self.density_net(feats.to(self.density_net[0].weight.dtype))
-        opt = self.options
-        sigma = trunc_exp(h[:, 0].float() + opt.density_bias, opt.max_log_density)
+        net = self.options.network
+        sigma = trunc_exp(h[:, 0].float() + net.density_bias, net.max_log_density)
         if self.cylinder is not None:
             sigma = clip_density(sigma, x, self.cylinder)
         return sigma, h[:, 1:]
@@ -237,7 +199,7 @@ class NGPField(Field):
                 f"NGPField.render: rays_o {tuple(rays_o.shape)} and rays_d "
                 f"{tuple(rays_d.shape)} differ in shape"
             )
-        opt = self.options
+        opt = self.options.marcher
         rays_o = rays_o.float().contiguous()
         rays_d = rays_d.float().contiguous()
         with torch.no_grad(), record_function("march"):
@@ -276,7 +238,7 @@ class NGPField(Field):
     # -- occupancy -----------------------------------------------------------------------
     def update(self, step: int) -> None:
         """Refresh the occupancy grid every `update_every` steps (instant-ngp's schedule)."""
-        opt = self.options
+        opt = self.options.occupancy
         if step % opt.update_every:
             return
         with torch.no_grad():
@@ -307,21 +269,50 @@ class NGPField(Field):
 
 
 def build(scene: SceneConfig, cfg) -> NGPField:
-    """A new ngp field for `scene`, knobs from `cfg.backend_options` (see `NGPOptions`)."""
-    opts = NGPOptions.from_dict(dict(getattr(cfg, "backend_options", {}) or {}))
+    """A new ngp field for `scene`, knobs from `cfg.backend_options` (see `NGPOptions`).
+
+    Where the scene sets a clip cylinder, the field's box is the box shrunk to the cylinder's
+    bounding box: the hash grid's and the occupancy grid's resolution go where the object is.
+    """
+    opts = parse_options("ngp", getattr(cfg, "backend_options", None))
     device = getattr(cfg, "device", None)
     device = None if device in (None, "auto") else device
-    return NGPField(scene.aabb, opts, scene.cylinder, seed=getattr(cfg, "seed", 0), device=device)
+    aabb = clip_aabb(scene.aabb, scene.cylinder)
+    return NGPField(aabb, opts, scene.cylinder, seed=getattr(cfg, "seed", 0), device=device)
+
+
+def canonical_config(config: dict) -> dict:
+    """The `config_dict()` of the field `from_config(config)` builds, without building it.
+
+    Turns the flat options of runs saved before the options had sections into today's form, so
+    a resume can compare a checkpoint's field config with a new field's.
+    """
+    where = "checkpoint field_config"
+    if not isinstance(config, dict) or "aabb" not in config or "options" not in config:
+        raise InputError(f"{where}: not an ngp field config (needs aabb and options)")
+    options = dict(config["options"])
+    if "network" not in options and "density_bias" not in options:
+        options["density_bias"] = 0.0  # runs saved before density_bias were trained without
+    opts = parse_options("ngp", options, f"{where} options")
+    if opts.network.density_bias is None:
+        opts = dataclasses.replace(
+            opts, network=dataclasses.replace(opts.network, density_bias=_fog_bias(config["aabb"]))
+        )
+    cyl = config.get("cylinder")
+    cyl = dataclasses.asdict(CylinderConfig(**cyl)) if cyl else None
+    aabb = [float(v) for v in np.asarray(config["aabb"], dtype=np.float32)]
+    return {"aabb": aabb, "options": dataclasses.asdict(opts), "cylinder": cyl}
 
 
 def from_config(config: dict, device: str | torch.device | None = None) -> NGPField:
-    """Rebuild a field from its `config_dict()` (checkpoints); load the weights after."""
-    cyl = config.get("cylinder")
-    # runs saved before density_bias existed were trained without one
-    options = {"density_bias": 0.0, **config["options"]}
+    """Rebuild a field from its `config_dict()` (checkpoints); load the weights after.
+
+    Also reads the flat `options` of runs saved before the options had sections.
+    """
+    c = canonical_config(config)
     return NGPField(
-        config["aabb"],
-        NGPOptions(**options),
-        CylinderConfig(**cyl) if cyl else None,
+        c["aabb"],
+        parse_options("ngp", c["options"]),
+        CylinderConfig(**c["cylinder"]) if c["cylinder"] else None,
         device=device,
     )

@@ -15,12 +15,16 @@ Everything here is plain PyTorch.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import torch
 from torch import nn
 
+from ..backends import VanillaOptions, parse_options
 from ..clip import clip_density
+from ..config import CylinderConfig
+from ..errors import InputError
 from .base import Field, RenderOutput, check_points
 
 
@@ -69,20 +73,30 @@ class NeRFMLP(nn.Module):
 
 
 def ray_aabb(
-    rays_o: torch.Tensor, rays_d: torch.Tensor, aabb: torch.Tensor
+    rays_o: torch.Tensor,
+    rays_d: torch.Tensor,
+    aabb: torch.Tensor,
+    near: float = 0.0,
+    far: float | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Entry and exit distances (R,) of rays with the box aabb (6,); exit < entry on a miss.
+    """Entry and exit distances (R,) of rays (R, 3) in the box aabb (6,), clamped to [near, far].
 
-    Axis-parallel rays (d = 0 on an axis) give ±inf slab bounds, never NaN: the division is
-    done on a direction nudged away from zero.
+    The contract of `kernels.raymarch.ray_aabb` (its PyTorch twin): a ray starting inside has
+    t_near = near; a ray that misses, or only touches the box (zero length), has
+    t_near = t_far = inf. Axis-parallel rays (d = 0 on an axis) give ±inf slab bounds, never
+    NaN: the division is done on a direction nudged away from zero.
     """
     d = torch.where(rays_d.abs() < 1e-12, torch.full_like(rays_d, 1e-12), rays_d)
     inv = 1.0 / d
     t_lo = (aabb[:3] - rays_o) * inv
     t_hi = (aabb[3:] - rays_o) * inv
-    t_near = torch.minimum(t_lo, t_hi).amax(-1)
+    t_near = torch.minimum(t_lo, t_hi).amax(-1).clamp_min(near)
     t_far = torch.maximum(t_lo, t_hi).amin(-1)
-    return t_near, t_far
+    if far is not None:
+        t_far = t_far.clamp_max(far)
+    miss = ~(t_far > t_near)
+    inf = torch.full_like(t_near, float("inf"))
+    return torch.where(miss, inf, t_near), torch.where(miss, inf, t_far)
 
 
 def sample_pdf(
@@ -109,11 +123,19 @@ def sample_pdf(
     return bin_b + (u - cdf_b) / denom * (bin_a - bin_b)
 
 
-def composite(
-    sigma: torch.Tensor, rgb: torch.Tensor, t: torch.Tensor, delta: torch.Tensor
-) -> tuple[torch.Tensor, ...]:
-    """Front-to-back compositing of (R, S) samples: weights, rgb (R, 3), depth, opacity (R,).
+def composite_dense(
+    sigma: torch.Tensor,
+    rgb: torch.Tensor,
+    t: torch.Tensor,
+    delta: torch.Tensor,
+    background: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """Front-to-back compositing of (R, S) samples on a dense grid (every ray S samples).
 
+    The contract of `kernels.composite.composite` (which takes packed samples): returns a dict
+    of rgb (R, 3) composited over `background` (3,) (None: black), depth (R,) = sum of w · t
+    (un-normalised), opacity (R,) = sum of weights, weights (R, S). sigma (R, S) 1/world
+    units, rgb (R, S, 3), t and delta (R, S) world units.
     alpha = 1 - exp(-σδ) computed as -expm1 so that σδ -> 0 keeps precision and σ -> ∞ gives
     alpha -> 1 with finite gradients.
     """
@@ -123,9 +145,33 @@ def composite(
     ]
     weights = alpha * trans
     color = (weights[..., None] * rgb).sum(1)
-    depth = (weights * t).sum(1)
     opacity = weights.sum(1)
-    return weights, color, depth, opacity
+    if background is not None:
+        color = color + (1.0 - opacity[:, None]) * background.to(color.dtype)
+    return {"rgb": color, "depth": (weights * t).sum(1), "opacity": opacity, "weights": weights}
+
+
+def distortion_loss_dense(
+    weights: torch.Tensor, t_mid: torch.Tensor, delta: torch.Tensor
+) -> torch.Tensor:
+    """Per-ray mip-NeRF 360 distortion loss (R,) of dense samples, in O(S) per ray.
+
+    The dense twin of `kernels.composite.distortion_loss` (packed samples, interval ends);
+    both return the per-ray loss (take `.mean()` for the regulariser).
+    weights, t_mid, delta: (R, S) compositing weights, interval midpoints and widths along each
+    ray, sorted by t_mid, in the units the caller chooses (vanilla passes normalised ray
+    distance, so the value does not depend on scale).
+        sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 delta_i
+    The double sum is 2 sum_i w_i (m_i W_{<i} - (w m)_{<i}) with exclusive prefix sums.
+    """
+    dt = torch.promote_types(weights.dtype, torch.float32)  # bf16 under autocast -> float32
+    w, m, delta = weights.to(dt), t_mid.to(dt), delta.to(dt)
+    wm = w * m
+    w_before = torch.cumsum(w, -1) - w
+    wm_before = torch.cumsum(wm, -1) - wm
+    bi = 2.0 * (w * (m * w_before - wm_before)).sum(-1)
+    uni = (w**2 * delta).sum(-1) / 3.0
+    return bi + uni
 
 
 class VanillaField(Field):
@@ -133,7 +179,7 @@ class VanillaField(Field):
 
     aabb: [xmin, ymin, zmin, xmax, ymax, zmax] world units; positions are mapped to [-1, 1]
     by the box's centre and largest half-extent before encoding (identity for the reference's
-    [-1, 1]^3 box). cylinder: (radius, y_min, y_max) density clip (supplement A.2) or None.
+    [-1, 1]^3 box). options: sizes (VanillaOptions); cylinder: density clip (supplement A.2).
     """
 
     backend = "vanilla"
@@ -141,46 +187,32 @@ class VanillaField(Field):
     def __init__(
         self,
         aabb: list[float],
-        cylinder: list[float] | None = None,
-        depth: int = 8,
-        width: int = 256,
-        skip: int = 4,
-        pos_freqs: int = 12,
-        dir_freqs: int = 4,
-        n_coarse: int = 64,
-        n_fine: int = 128,
-        density_activation: str = "softplus",
+        options: VanillaOptions | None = None,
+        cylinder: CylinderConfig | None = None,
     ):
         super().__init__()
-        if density_activation not in ("relu", "softplus"):
-            raise ValueError("density_activation must be relu or softplus")
-        self._config = dict(
-            aabb=[float(a) for a in aabb],
-            cylinder=None if cylinder is None else [float(c) for c in cylinder],
-            depth=depth,
-            width=width,
-            skip=skip,
-            pos_freqs=pos_freqs,
-            dir_freqs=dir_freqs,
-            n_coarse=n_coarse,
-            n_fine=n_fine,
-            density_activation=density_activation,
-        )
+        opt = options or VanillaOptions()
+        self.options = opt
         self.register_buffer("aabb", torch.tensor(aabb, dtype=torch.float32))
         a = self.aabb
         self.register_buffer("center", (a[:3] + a[3:]) / 2, persistent=False)
         self.register_buffer("half_extent", ((a[3:] - a[:3]) / 2).max(), persistent=False)
-        self.cylinder = None if cylinder is None else tuple(float(c) for c in cylinder)
-        self.n_coarse, self.n_fine = n_coarse, n_fine
-        self.density_activation = density_activation
-        self.pos_enc = PositionalEncoding(pos_freqs)
-        self.dir_enc = PositionalEncoding(dir_freqs)
+        self.cylinder = cylinder
+        self.n_coarse, self.n_fine = opt.n_coarse, opt.n_fine
+        self.density_activation = opt.density_activation
+        self.pos_enc = PositionalEncoding(opt.pos_freqs)
+        self.dir_enc = PositionalEncoding(opt.dir_freqs)
         in_pos, in_dir = self.pos_enc.out_dim(3), self.dir_enc.out_dim(3)
-        self.coarse = NeRFMLP(in_pos, in_dir, depth, width, skip)
-        self.fine = NeRFMLP(in_pos, in_dir, depth, width, skip) if n_fine > 0 else None
+        sizes = (opt.depth, opt.width, opt.skip)
+        self.coarse = NeRFMLP(in_pos, in_dir, *sizes)
+        self.fine = NeRFMLP(in_pos, in_dir, *sizes) if opt.n_fine > 0 else None
 
     def config_dict(self) -> dict[str, Any]:
-        return dict(self._config)
+        return {
+            "aabb": [float(v) for v in self.aabb.cpu()],
+            "options": dataclasses.asdict(self.options),
+            "cylinder": None if self.cylinder is None else dataclasses.asdict(self.cylinder),
+        }
 
     def built(self) -> dict[str, Any]:
         """Which optional parts this field runs (for RUN/config.json)."""
@@ -229,9 +261,8 @@ class VanillaField(Field):
         check_points("rays_o", rays_o, "VanillaField.render")
         check_points("rays_d", rays_d, "VanillaField.render")
         n_rays = rays_o.shape[0]
-        t_near, t_far = ray_aabb(rays_o, rays_d, self.aabb)
-        t_near = t_near.clamp_min(near)
-        hit = t_far > t_near
+        t_near, t_far = ray_aabb(rays_o, rays_d, self.aabb, near)
+        hit = torch.isfinite(t_near)
         # A miss gets a dummy unit interval and zero weight (hit mask), so nothing is NaN.
         t_near = torch.where(hit, t_near, torch.zeros_like(t_near))
         t_far = torch.where(hit, t_far, torch.ones_like(t_far))
@@ -249,54 +280,65 @@ class VanillaField(Field):
             sigma, rgb = self._net(x.reshape(-1, 3), d.reshape(-1, 3), net)
             sigma = sigma.float().reshape(t.shape) * mask
             rgb = rgb.float().reshape(*t.shape, 3)
-            return (*composite(sigma, rgb, t, delta), delta)
+            return composite_dense(sigma, rgb, t, delta, background), delta
 
-        w_c, rgb_c, depth_c, opa_c, delta_c = run(t_c, self.coarse)
+        coarse, delta_c = run(t_c, self.coarse)
         out: RenderOutput = {}
         if self.fine is not None:
             with torch.no_grad():
                 mids = 0.5 * (t_c[:, 1:] + t_c[:, :-1])
                 bins = torch.cat([t_near[:, None], mids, t_far[:, None]], -1)
-                t_f = sample_pdf(bins, w_c, self.n_fine, deterministic=not train)
-                t_all, _ = torch.sort(torch.cat([t_c, t_f], -1), -1)
-            w, rgb, depth, opa, delta = run(t_all, self.fine)
-            t_s = t_all
-            out["rgb_coarse"] = self._bg(rgb_c, opa_c, background)
+                t_f = sample_pdf(bins, coarse["weights"], self.n_fine, deterministic=not train)
+                t_s, _ = torch.sort(torch.cat([t_c, t_f], -1), -1)
+            fine, delta = run(t_s, self.fine)
+            out["rgb_coarse"] = coarse["rgb"]
         else:
-            w, rgb, depth, opa, delta, t_s = w_c, rgb_c, depth_c, opa_c, delta_c, t_c
-        out["rgb"] = self._bg(rgb, opa, background)
-        out["depth"] = depth
-        out["opacity"] = opa
+            fine, delta, t_s = coarse, delta_c, t_c
+        out["rgb"] = fine["rgb"]
+        out["depth"] = fine["depth"]
+        out["opacity"] = fine["opacity"]
         if train:
-            from ..losses import distortion_loss
-
             s = span.clamp_min(1e-6)
-            out["distortion"] = distortion_loss(
-                w, (t_s + 0.5 * delta - t_near[:, None]) / s, delta / s
-            )
+            out["distortion"] = distortion_loss_dense(
+                fine["weights"], (t_s + 0.5 * delta - t_near[:, None]) / s, delta / s
+            ).mean()
         out["n_samples"] = n_rays * (n_c + (self.n_fine + n_c if self.fine is not None else 0))
         return out
 
-    @staticmethod
-    def _bg(rgb: torch.Tensor, opacity: torch.Tensor, background: torch.Tensor | None):
-        if background is None:
-            return rgb
-        return rgb + (1.0 - opacity[:, None]) * background.to(rgb.dtype)
-
 
 def build(scene, cfg) -> VanillaField:
-    """The vanilla field for a SceneConfig and TrainConfig (backend_options override sizes)."""
-    opts = dict(cfg.backend_options or {})
-    cyl = scene.cylinder
-    cylinder = None if cyl is None else [cyl.radius, cyl.y_min, cyl.y_max]
-    try:
-        return VanillaField(list(scene.aabb), cylinder, **opts)
-    except TypeError as e:
-        from ..errors import InputError
-
-        raise InputError(f"backend_options for vanilla: {e}") from None
+    """The vanilla field for a SceneConfig and TrainConfig (backend_options: VanillaOptions)."""
+    opts = parse_options("vanilla", getattr(cfg, "backend_options", None))
+    return VanillaField(list(scene.aabb), opts, scene.cylinder)
 
 
-def from_config(config: dict) -> VanillaField:
-    """Rebuild a field from its `config_dict()` (checkpoints)."""
-    return VanillaField(**config)
+def canonical_config(config: dict) -> dict:
+    """The `config_dict()` of the field `from_config(config)` builds, without building it.
+
+    Also reads runs saved before the options had a dataclass: options as top-level keys and
+    the cylinder as a [radius, y_min, y_max] list.
+    """
+    where = "checkpoint field_config"
+    if not isinstance(config, dict) or "aabb" not in config:
+        raise InputError(f"{where}: not a vanilla field config (needs aabb)")
+    config = dict(config)
+    aabb, cyl = config.pop("aabb"), config.pop("cylinder", None)
+    options = config.pop("options", config)  # old form: the options are the remaining keys
+    if isinstance(cyl, (list, tuple)):
+        cyl = CylinderConfig(*cyl)
+    elif isinstance(cyl, dict):
+        cyl = CylinderConfig(**cyl)
+    return {
+        "aabb": [float(v) for v in torch.tensor(aabb, dtype=torch.float32)],
+        "options": dataclasses.asdict(parse_options("vanilla", options, f"{where} options")),
+        "cylinder": None if cyl is None else dataclasses.asdict(cyl),
+    }
+
+
+def from_config(config: dict, device=None) -> VanillaField:
+    """Rebuild a field from its `config_dict()` (checkpoints, also older flat ones); load the
+    weights after."""
+    c = canonical_config(config)
+    cyl = None if c["cylinder"] is None else CylinderConfig(**c["cylinder"])
+    field = VanillaField(c["aabb"], parse_options("vanilla", c["options"]), cyl)
+    return field if device is None else field.to(device)

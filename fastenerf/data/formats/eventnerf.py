@@ -43,7 +43,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ...config import IntrinsicsConfig, SceneConfig, TrajectoryConfig
+from ...config import (
+    EVENTNERF_REAL_THRESHOLD,
+    IntrinsicsConfig,
+    SceneConfig,
+    TrajectoryConfig,
+    eventnerf_real_cylinder,
+)
 from ...errors import InputError
 from ...io import atomic_dir, write_json
 from ..events import EventStream
@@ -425,6 +431,8 @@ def _scene_config(
         keep_span = cfg.t_start_us <= t_views[0] and cfg.t_end_us >= t_views[-1]
     else:
         real = kind == "real"
+        # a released real scene of the authors' gets its config's clip and threshold (DESIGN §9)
+        threshold = EVENTNERF_REAL_THRESHOLD.get(root.name.lower(), 0.1) if real else 0.25
         cfg = SceneConfig(
             name=root.name,
             width=width,
@@ -432,9 +440,10 @@ def _scene_config(
             intrinsics=intr,
             trajectory=TrajectoryConfig(kind="timed"),
             bayer="rggb",
-            pos_threshold=0.1 if real else 0.25,
-            neg_threshold=0.1 if real else 0.25,
+            pos_threshold=threshold,
+            neg_threshold=threshold,
             loop=real,
+            cylinder=eventnerf_real_cylinder(root.name) if real else None,
             background=REAL_BACKGROUND if real else [0.0, 0.0, 0.0],
             kind=kind,
         )

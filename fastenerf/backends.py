@@ -1,0 +1,216 @@
+"""The field backends by name, and their options: the one registry everything reads.
+
+`BACKENDS` maps a name to what the rest of the code needs to know without building a field:
+its options dataclass (what `TrainConfig.backend_options` is parsed into) and its optimiser
+defaults. The field classes themselves live in `fastenerf.fields.<name>` (imported lazily, so
+this module and `--help` load neither torch nor Warp).
+
+Options come in sections, as instant-ngp's config (encoding / network / sampler):
+    ngp      encoding (kernels' HashGridConfig), network, marcher, occupancy
+    vanilla  one flat section (VanillaOptions)
+`parse_options` takes a JSON object nested by section (`{"marcher": {"cone_angle": 0}}`) or
+flat (`{"cone_angle": 0}`, what older run folders hold): a flat key goes to its section.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from .errors import InputError
+from .kernels.gridconfig import HashGridConfig
+from .schema import from_dict
+
+
+@dataclass
+class NetworkOptions:
+    """The ngp field's two tiny MLPs (no biases, as tiny-cuda-nn's fully fused ones)."""
+
+    hidden: int = field(default=64, metadata={"min": 1, "max": 1024})
+    """Neurons per hidden layer of the density MLP (1 hidden layer) and colour MLP (2)."""
+    geo_features: int = field(default=15, metadata={"min": 1, "max": 256})
+    """Geometry features the density MLP hands to the colour MLP besides σ."""
+    density_bias: float | None = field(default=None, metadata={"min": -50.0, "max": 50.0})
+    """σ = exp(MLP logit + density_bias), so a new field is a uniform fog of σ ≈ e^bias
+    (1/world units). None: the fog's optical depth across the box is 9 (INIT_OPTICAL_DEPTH),
+    whatever the scene's scale; under event supervision a transparent start stalls colour."""
+    max_log_density: float = field(default=15.0, metadata={"min": 1.0, "max": 80.0})
+    """The truncated exp's clamp: σ ≤ e^max_log_density (15: ≈ 3.3e6, DESIGN §5), computed
+    in float32 whatever the MLP's autocast dtype."""
+
+
+@dataclass
+class MarcherOptions:
+    """Ray marching through the occupancy grid (DESIGN §4)."""
+
+    cone_angle: float = field(default=1.0 / 256, metadata={"min": 0.0, "max": 1.0})
+    """Step growth with distance: dt = clamp(t · cone_angle, dt_min, dt_max); 0 gives
+    constant steps (slower, sharper), 1/256 instant-ngp's (faster). Default: chosen by the
+    training budget (1/256 up to a minute, 0 beyond)."""
+    dt_min: float | None = field(default=None, metadata={"gt": 0.0, "max": 10.0})
+    """Smallest marching step, world units. None: √3/1024 · box size."""
+    max_samples: int = field(default=1024, metadata={"min": 1, "max": 65536})
+    """Most samples along one ray."""
+
+
+@dataclass
+class OccupancyOptions:
+    """The occupancy grid that lets the marcher skip empty space (instant-ngp's schedule)."""
+
+    grid_resolution: int = field(default=128, metadata={"min": 8, "max": 512, "multiple_of": 2})
+    """Cells per axis of the grid over the box."""
+    density_threshold: float = field(default=0.01, metadata={"min": 0.0, "max": 1e6})
+    """A cell is occupied while its optical thickness over one dt_min step exceeds this."""
+    grid_decay: float = field(default=0.95, metadata={"min": 0.0, "max": 1.0})
+    """Factor each cell's density decays by at every grid update."""
+    update_every: int = field(default=16, metadata={"min": 1, "max": 1_000_000})
+    """Steps between grid updates."""
+    warmup_steps: int = field(default=256, metadata={"min": 0, "max": 10_000_000})
+    """Steps during which every cell is refreshed (later: a sample of cells per update)."""
+
+
+@dataclass
+class NGPOptions:
+    """Accuracy/speed knobs of the ngp backend, by component."""
+
+    encoding: HashGridConfig = field(default_factory=HashGridConfig)
+    """Multiresolution hash grid over the box."""
+    network: NetworkOptions = field(default_factory=NetworkOptions)
+    """Density and colour MLPs."""
+    marcher: MarcherOptions = field(default_factory=MarcherOptions)
+    """Ray marching."""
+    occupancy: OccupancyOptions = field(default_factory=OccupancyOptions)
+    """Empty-space skipping."""
+
+
+@dataclass
+class VanillaOptions:
+    """The reference NeRF's sizes (DESIGN §9): coarse and fine MLPs, hierarchical sampling."""
+
+    depth: int = field(default=8, metadata={"min": 1, "max": 32})
+    """Layers of each MLP."""
+    width: int = field(default=256, metadata={"min": 2, "max": 4096})
+    """Neurons per layer."""
+    skip: int = field(default=4, metadata={"min": 0, "max": 32})
+    """The encoded position is fed again after layer skip + 1."""
+    pos_freqs: int = field(default=12, metadata={"min": 0, "max": 24})
+    """Positional-encoding frequencies of positions (sin/cos(2^k x), k < pos_freqs)."""
+    dir_freqs: int = field(default=4, metadata={"min": 0, "max": 24})
+    """Positional-encoding frequencies of view directions."""
+    n_coarse: int = field(default=64, metadata={"min": 1, "max": 4096})
+    """Stratified samples per ray for the coarse network."""
+    n_fine: int = field(default=128, metadata={"min": 0, "max": 4096})
+    """Samples per ray drawn from the coarse weights for the fine network (0: no fine net)."""
+    density_activation: Literal["softplus", "relu"] = "softplus"
+    """softplus(raw - 1) (mip-NeRF's; trains from any start) or relu (the reference's)."""
+
+
+@dataclass(frozen=True)
+class Backend:
+    """What the registry knows of one backend."""
+
+    name: str
+    options: type
+    lr: float  # learning rate when a preset leaves it open
+    adam_betas: tuple[float, float]
+    adam_eps: float
+    summary: str
+
+
+# The reference's constant 5e-4 for the NeRF MLP (§9), instant-ngp's 1e-2 (and its Adam
+# betas / eps) for hash grids (§4).
+BACKENDS: dict[str, Backend] = {
+    "ngp": Backend(
+        "ngp", NGPOptions, 1e-2, (0.9, 0.99), 1e-15, "hash grid + tiny MLP, Warp kernels"
+    ),
+    "vanilla": Backend(
+        "vanilla", VanillaOptions, 5e-4, (0.9, 0.999), 1e-8, "reference NeRF MLP, PyTorch"
+    ),
+}
+BACKEND_NAMES: tuple[str, ...] = tuple(BACKENDS)
+
+
+def backend(name: str) -> Backend:
+    """The registry entry of `name`, or a one-line InputError listing the backends."""
+    if name not in BACKENDS:
+        raise InputError(f"unknown backend {name!r} (choose from {', '.join(BACKEND_NAMES)})")
+    return BACKENDS[name]
+
+
+def option_names(cls: type) -> dict[str, str | None]:
+    """{option name: its section (None for a top-level field)} of an options dataclass."""
+    names: dict[str, str | None] = {}
+    for f in dataclasses.fields(cls):
+        if _is_section(f):
+            names.update({g.name: f.name for g in dataclasses.fields(f.default_factory)})
+        else:
+            names[f.name] = None
+    return names
+
+
+def _is_section(f: dataclasses.Field) -> bool:
+    return f.default_factory is not dataclasses.MISSING and dataclasses.is_dataclass(
+        f.default_factory
+    )
+
+
+def nest_options(cls: type, d: dict, where: str) -> dict:
+    """`d` with every flat key moved into its section; one line for an unknown key."""
+    if not isinstance(d, dict):
+        raise InputError(f"{where}: must be a JSON object")
+    sections = {f.name for f in dataclasses.fields(cls) if _is_section(f)}
+    names = option_names(cls)
+    out: dict[str, Any] = {}
+    for key, value in d.items():
+        if key in sections:
+            if not isinstance(value, dict):
+                raise InputError(f"{where}: '{key}' must be an object (a section of options)")
+            for k, v in value.items():
+                if names.get(k) != key:
+                    valid = ", ".join(k2 for k2, s in names.items() if s == key)
+                    raise InputError(f"{where}: unknown key '{key}.{k}' (valid: {valid})")
+                _put(out, key, k, v, where)
+        elif key in names:
+            _put(out, names[key], key, value, where)
+        else:
+            valid = ", ".join([*sorted(sections), *names])
+            raise InputError(f"{where}: unknown key '{key}' (valid: {valid})")
+    return out
+
+
+def _put(out: dict, section: str | None, key: str, value: Any, where: str) -> None:
+    node = out if section is None else out.setdefault(section, {})
+    if key in node:
+        raise InputError(f"{where}: '{key}' is given twice (flat and in section '{section}')")
+    node[key] = value
+
+
+def parse_options(name: str, d: dict | None, where: str = "backend_options") -> Any:
+    """The options dataclass of backend `name` from a JSON object (nested or flat).
+
+    Types and ranges are checked; every problem is one InputError line naming the key.
+    """
+    cls = backend(name).options
+    return from_dict(cls, nest_options(cls, dict(d or {}), where), where)
+
+
+def get_option(name: str, d: dict | None, key: str) -> Any:
+    """The value `d` gives option `key` of backend `name` (flat or in its section), or None."""
+    d = d or {}
+    if key in d:
+        return d[key]
+    section = option_names(backend(name).options).get(key)
+    return (d.get(section) or {}).get(key) if section else None
+
+
+def set_option(name: str, d: dict | None, key: str, value: Any) -> dict:
+    """A copy of options `d` with option `key` set: in its section if `d` has that section
+    written out, else flat."""
+    out = dict(d or {})
+    section = option_names(backend(name).options).get(key)
+    if section and isinstance(out.get(section), dict) and key not in out:
+        out[section] = {**out[section], key: value}
+    else:
+        out[key] = value
+    return out
