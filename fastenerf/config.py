@@ -207,6 +207,12 @@ class SceneConfig:
             "min must be below max on every axis",
         )
         tr = self.trajectory
+        _check(
+            len(tr.center) == 3 and all(math.isfinite(c) for c in tr.center),
+            where,
+            "trajectory.center",
+            f"must be 3 finite numbers [x, y, z], got {tr.center}",
+        )
         if tr.kind == "timed":
             _check(bool(tr.poses_file), where, "trajectory.poses_file", "is required for 'timed'")
         else:

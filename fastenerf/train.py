@@ -123,7 +123,8 @@ class Trainer:
     def _check_batch_memory(self) -> None:
         """Refuse (one line, with the estimate and the limit) a ray batch that cannot fit."""
         spr, floats = BATCH_MEMORY[self.cfg.backend]
-        check_ray_batch(self.rays_per_step_total, spr, floats, str(self.device), "--rays")
+        what = f"a step's rays (--rays {self.cfg.rays_per_step:,} at t0 and t1):"
+        check_ray_batch(self.rays_per_step_total, spr, floats, str(self.device), what)
 
     def _build_data(self, scene: Scene) -> None:
         """Rig, event index, window and ray samplers: the data half of the pipeline."""
