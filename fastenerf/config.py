@@ -314,6 +314,34 @@ class TrainConfig:
     backend_options: dict[str, Any] = field(default_factory=dict)
     perturb: PerturbConfig = field(default_factory=lambda: PerturbConfig())
     """The robustness studies' perturbations of the training data (pose error, noise events)."""
+    # Self-calibration (issue #20; fastenerf/self_calibration.py): both off by default.
+    refine_poses: bool = False
+    """Learn a correction of every training pose on the window grid (rotation about the camera
+    centre + translation, world frame) jointly with the field, with its own Adam."""
+    refine_lr: float = 1e-3
+    """Pose-correction learning rate at the start (radians / world units per step)."""
+    refine_lr_final: float = 1e-5
+    """Pose-correction learning rate at the end of the budget (exponential decay)."""
+    refine_c2f_start: float = 0.1
+    """Coarse-to-fine (BARF): fraction of the budget at which the encoding's finer levels
+    (ngp hash levels, vanilla frequency bands) start to fade in; before it only the coarsest."""
+    refine_c2f_end: float = 0.5
+    """Fraction of the budget at which every level is on (<= refine_c2f_start: no schedule)."""
+    refine_gauge: Literal["mean", "first", "none"] = "mean"
+    """Gauge fix of the corrections, so the scene does not drift with them: mean (the
+    corrections' mean rotation and translation is zero), first (the first pose stays), none."""
+    estimate_threshold: bool = False
+    """Learn the positive / negative contrast thresholds' ratio (their product stays at
+    scene.json's: the common scale is not observable) jointly with the field."""
+    threshold_lr: float = 1e-3
+    """Threshold learning rate (log units per step), following the field's lr schedule."""
+    threshold_per_pixel: bool = False
+    """Also learn a per-pixel factor on each threshold (sensor mismatch), regularised."""
+    threshold_pixel_weight: float = 1.0
+    """Weight of the per-pixel factors' regulariser: mean squared log factor."""
+    threshold_free_scale: bool = False
+    """Learn the thresholds' common scale too (ill-posed: a field of lower contrast explains
+    the events as well, so the loss drifts it down; for experiments)."""
 
     def validate(self, where: str = "train config") -> TrainConfig:
         _check(self.backend in ("ngp", "vanilla"), where, "backend", "must be 'ngp' or 'vanilla'")
@@ -363,10 +391,31 @@ class TrainConfig:
         )
         _check(self.checkpoint_every_steps >= 0, where, "checkpoint_every_steps", "must be >= 0")
         _check(self.eval_scale > 0, where, "eval_scale", "must be positive")
+        self._validate_self_calibration(where)
         _check(
             self.chunk >= 1 and self.log_every >= 1, where, "chunk/log_every", "must be positive"
         )
         return self
+
+    def _validate_self_calibration(self, where: str) -> None:
+        for key in ("refine_lr", "refine_lr_final", "threshold_lr"):
+            v = getattr(self, key)
+            _check(0 < v <= 1, where, key, f"must be in (0, 1], got {v}")
+        for key in ("refine_c2f_start", "refine_c2f_end"):
+            v = getattr(self, key)
+            _check(0 <= v <= 1, where, key, f"must be a fraction of the budget in [0, 1], got {v}")
+        _check(
+            self.refine_gauge in ("mean", "first", "none"),
+            where,
+            "refine_gauge",
+            "must be mean, first or none",
+        )
+        _check(
+            0 <= self.threshold_pixel_weight <= 1e6,
+            where,
+            "threshold_pixel_weight",
+            "must be in [0, 1e6]",
+        )
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:
         """A copy with every `None` replaced by its scene / device / backend default."""

@@ -44,6 +44,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help='backend options as JSON, e.g. \'{"depth": 4, "width": 128}\'',
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--refine-poses",
+        action="store_true",
+        default=None,
+        help="learn a correction of every training pose with the field (issue #20)",
+    )
+    p.add_argument(
+        "--estimate-threshold",
+        action="store_true",
+        default=None,
+        help="learn the contrast thresholds' ratio with the field (issue #20)",
+    )
 
 
 def build_config(args: argparse.Namespace):
@@ -67,7 +79,8 @@ def build_config(args: argparse.Namespace):
 
         cfg = TrainConfig.from_dict(read_run_config(args.out)["train"], str(conf_path))
         # Flags given now must agree with the run (the trainer checks); the budget may change.
-        for key in ("backend", "preset", "seed", "rays_per_step", "lr"):
+        keys = ("backend", "preset", "seed", "rays_per_step", "lr")
+        for key in keys + ("refine_poses", "estimate_threshold"):
             value = getattr(args, key)
             if value is not None:
                 setattr(cfg, key, value)
@@ -90,6 +103,8 @@ def build_config(args: argparse.Namespace):
         lr=args.lr,
         device=args.device,
         backend_options=options,
+        refine_poses=args.refine_poses,
+        estimate_threshold=args.estimate_threshold,
     )
 
 
