@@ -316,32 +316,31 @@ class TrainConfig:
     """The robustness studies' perturbations of the training data (pose error, noise events)."""
     # Self-calibration (issue #20; fastenerf/self_calibration.py): both off by default.
     refine_poses: bool = False
-    """Learn a correction of every training pose on the window grid (rotation about the camera
-    centre + translation, world frame) jointly with the field, with its own Adam."""
+    """Learn a correction of every training pose (window grid) with the field (own Adam)."""
+    refine_translation: bool = True
+    """Also learn the camera centres' shifts (off: rotations only)."""
     refine_lr: float = 1e-3
-    """Pose-correction learning rate at the start (radians / world units per step)."""
+    """Pose-correction lr at the start (rad, world units per step); decays to refine_lr_final."""
     refine_lr_final: float = 1e-5
-    """Pose-correction learning rate at the end of the budget (exponential decay)."""
+    """Pose-correction learning rate at the end of the budget."""
     refine_c2f_start: float = 0.1
-    """Coarse-to-fine (BARF): fraction of the budget at which the encoding's finer levels
-    (ngp hash levels, vanilla frequency bands) start to fade in; before it only the coarsest."""
+    """Coarse-to-fine (BARF): budget fraction where the encoding's finer levels (ngp hash
+    levels, vanilla frequency bands) start to fade in; before it only the coarsest."""
     refine_c2f_end: float = 0.5
-    """Fraction of the budget at which every level is on (<= refine_c2f_start: no schedule)."""
+    """Budget fraction where every level is on (<= refine_c2f_start: no schedule)."""
     refine_gauge: Literal["mean", "first", "none"] = "mean"
-    """Gauge fix of the corrections, so the scene does not drift with them: mean (the
-    corrections' mean rotation and translation is zero), first (the first pose stays), none."""
+    """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift)."""
     estimate_threshold: bool = False
-    """Learn the positive / negative contrast thresholds' ratio (their product stays at
-    scene.json's: the common scale is not observable) jointly with the field."""
+    """Learn the contrast thresholds' ratio C_pos/C_neg jointly with the field (their product
+    stays at scene.json's: the common scale is not observable)."""
     threshold_lr: float = 1e-3
     """Threshold learning rate (log units per step), following the field's lr schedule."""
     threshold_per_pixel: bool = False
-    """Also learn a per-pixel factor on each threshold (sensor mismatch), regularised."""
+    """Also learn per-pixel factors on the thresholds (mismatch), regularised towards 1."""
     threshold_pixel_weight: float = 1.0
-    """Weight of the per-pixel factors' regulariser: mean squared log factor."""
+    """Weight of the per-pixel factors' regulariser (mean squared log factor)."""
     threshold_free_scale: bool = False
-    """Learn the thresholds' common scale too (ill-posed: a field of lower contrast explains
-    the events as well, so the loss drifts it down; for experiments)."""
+    """Learn the common scale too (ill-posed: the loss drifts it down; for experiments)."""
 
     def validate(self, where: str = "train config") -> TrainConfig:
         _check(self.backend in ("ngp", "vanilla"), where, "backend", "must be 'ngp' or 'vanilla'")
@@ -403,19 +402,10 @@ class TrainConfig:
             _check(0 < v <= 1, where, key, f"must be in (0, 1], got {v}")
         for key in ("refine_c2f_start", "refine_c2f_end"):
             v = getattr(self, key)
-            _check(0 <= v <= 1, where, key, f"must be a fraction of the budget in [0, 1], got {v}")
-        _check(
-            self.refine_gauge in ("mean", "first", "none"),
-            where,
-            "refine_gauge",
-            "must be mean, first or none",
-        )
-        _check(
-            0 <= self.threshold_pixel_weight <= 1e6,
-            where,
-            "threshold_pixel_weight",
-            "must be in [0, 1e6]",
-        )
+            _check(0 <= v <= 1, where, key, f"must be a budget fraction in [0, 1], got {v}")
+        gauges, w = ("mean", "first", "none"), self.threshold_pixel_weight
+        _check(self.refine_gauge in gauges, where, "refine_gauge", f"must be one of {gauges}")
+        _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:
         """A copy with every `None` replaced by its scene / device / backend default."""

@@ -2,16 +2,20 @@
 
 Every window starts and ends on a grid pose (`sampling.WindowSampler`), so a ray's camera is
 one row of the sampler's (n + 1)-pose table and a correction per row is a correction of
-every pose training sees. Row i gets δ_i = (ω_i, v_i), radians and world units:
+every pose training sees. Row i learns (ω_i, u_i) in its CAMERA's frame (radians, world
+units), applied as the world-frame correction δ_i = (R_i ω_i, R_i u_i) = (w_i, v_i):
 
-    R'_i = Exp(ω_i) · R_i        a world-frame turn about the camera centre
-    t'_i = t_i + v_i             a world-frame shift of the centre
+    R'_i = Exp(w_i) · R_i        a turn about the camera centre
+    t'_i = t_i + v_i             a shift of the centre
 
-World-frame corrections make the gauge simple: a rigid motion of the whole scene is (to first
-order) the same δ for every row, so the "mean" gauge (zero-mean corrections) removes exactly
-it; "first" keeps the first row fixed instead (the scene keeps that camera's frame, errors
-included); "none" leaves the scene free to drift. Rows that no window uses (a loop's last
-row, the twin of its first) keep a zero correction and are left out of the gauge.
+Camera-frame parameters let Adam scale each camera axis on its own: the roll about the
+optical axis gets far smaller gradients than pan and tilt, and in world coordinates it would
+share (and lose) their step sizes. The gauge is fixed in the world frame, where a rigid
+motion of the whole scene is (to first order) the same δ for every row: "mean" makes the
+world-frame corrections zero-mean, which removes exactly that motion; "first" keeps the
+first row fixed instead (the scene keeps that camera's frame, errors included); "none"
+leaves the scene free to drift. Rows no window uses (a loop's last row, the twin of its
+first) keep a zero correction and are left out of the gauge.
 """
 
 from __future__ import annotations
@@ -29,8 +33,9 @@ class PoseRefiner(nn.Module):
 
     grid_c2w: (G, 4, 4) the training poses of the grid rows (OpenCV camera-to-world);
     used: (G,) bool, the rows windows use; gauge: one of GAUGES; true_c2w: optional (G, 4, 4)
-    exact poses (a study's unperturbed rig), only for the error stats.
-    Parameter `delta`: (G, 6) [ω (rad), v (world units)] before the gauge fix.
+    exact poses (a study's unperturbed rig), only for the error stats; translation: False
+    learns rotations only (the centres stay).
+    Parameter `delta`: (G, 6) camera-frame [ω (rad), u (world units)] before the gauge fix.
     """
 
     def __init__(
@@ -39,6 +44,7 @@ class PoseRefiner(nn.Module):
         used: torch.Tensor,
         gauge: str = "mean",
         true_c2w: torch.Tensor | None = None,
+        translation: bool = True,
     ):
         super().__init__()
         if gauge not in GAUGES:
@@ -51,15 +57,20 @@ class PoseRefiner(nn.Module):
         if gauge == "first":
             mask[int(used.nonzero()[0, 0])] = 0.0
         self.register_buffer("used", used.to(self.base.device, torch.bool))
-        self.register_buffer("mask", mask[:, None])
+        cols = torch.tensor([1.0] * 3 + [float(translation)] * 3, device=mask.device)
+        self.register_buffer("mask", mask[:, None] * cols)
         self.register_buffer("true_c2w", None if true_c2w is None else true_c2w.float().clone())
         self.delta = nn.Parameter(torch.zeros(len(grid_c2w), 6, device=self.base.device))
 
     def corrections(self) -> torch.Tensor:
-        """The gauge-fixed corrections δ, (G, 6): zero on unused (and a fixed first) row."""
-        d = self.delta * self.mask
+        """The gauge-fixed world-frame corrections δ = [w, v], (G, 6): zero on unused rows (and
+        on a fixed first row)."""
+        R = self.base[:, :3, :3]
+        d = torch.einsum("gij,gkj->gki", R, (self.delta * self.mask).view(-1, 2, 3))
+        d = d.reshape(-1, 6)
         if self.gauge == "mean":
-            d = d - self.mask * (d.sum(0, keepdim=True) / self.mask.sum())
+            rows = self.mask[:, :1]
+            d = d - rows * (d.sum(0, keepdim=True) / rows.sum())
         return d
 
     def rotations(self, d: torch.Tensor | None = None) -> torch.Tensor:

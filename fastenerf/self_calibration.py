@@ -60,7 +60,11 @@ class SelfCalibration:
         groups = []
         if cfg.refine_poses:
             self.poses = PoseRefiner(
-                sampler.grid_c2w, used_rows(sampler), cfg.refine_gauge, true_c2w
+                sampler.grid_c2w,
+                used_rows(sampler),
+                cfg.refine_gauge,
+                true_c2w,
+                translation=cfg.refine_translation,
             )
             groups.append({"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"})
         if cfg.estimate_threshold:
