@@ -340,7 +340,7 @@ class TrainConfig:
     threshold_pixel_weight: float = 1.0
     """Weight of the per-pixel factors' regulariser (mean squared log factor)."""
     threshold_free_scale: bool = False
-    """Learn the common scale too (ill-posed: the loss drifts it down; for experiments)."""
+    """Learn the common scale too (ill-posed: nothing holds it; for experiments)."""
 
     def validate(self, where: str = "train config") -> TrainConfig:
         _check(self.backend in ("ngp", "vanilla"), where, "backend", "must be 'ngp' or 'vanilla'")

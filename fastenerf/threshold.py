@@ -16,8 +16,8 @@ What the events can and cannot tell (and so what is learnt):
   smaller exactly, and colour-corrected PSNR does not see it either. Only the ends of the log
   range (the ε floor, colours saturating at 1) pin it, from one side. So by default the
   product C₊·C₋ stays at scene.json's value (the scale comes from the preset) and
-  `free_scale` is for experiments (the loss then drifts the scale down: smaller targets are
-  easier to fit);
+  `free_scale` is for experiments (nothing in the loss holds the scale, and where the fit is
+  imperfect smaller targets leave smaller residuals: expected to drift down);
 - per-pixel factors (sensor mismatch, `per_pixel`) are observable through multi-view
   consistency; they are pulled towards 1 by a regulariser (their mean squared log).
 
