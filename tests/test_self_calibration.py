@@ -493,3 +493,18 @@ def test_cli_flags(tmp_path):
         TrainConfig(refine_gauge="median").validate()
     with pytest.raises(InputError, match="refine_lr"):
         TrainConfig(refine_lr=0.0).validate()
+
+
+def test_synth_biased_thresholds_and_mismatch(tmp_path):
+    """The threshold study's scenes: separate thresholds and per-pixel mismatch, recorded."""
+    from fastenerf.cli import main
+    from fastenerf.config import SceneConfig as SC
+
+    out = tmp_path / "s"
+    argv = ["synth", "--scene", "blocks", "--out", str(out), "--size", "32x24", "--frames", "12"]
+    argv += ["--threshold", "0.3", "--neg-threshold", "0.2", "--mismatch", "0.03"]
+    assert main(argv) == 0
+    sc = SC.load(out)
+    assert (sc.pos_threshold, sc.neg_threshold) == (0.3, 0.2)
+    bad = ["synth", "--scene", "blocks", "--out", str(tmp_path / "t"), "--neg-threshold", "-1"]
+    assert main(bad) == 2
