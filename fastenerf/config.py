@@ -365,6 +365,33 @@ class TrainConfig:
     by section or flat."""
     perturb: PerturbConfig = field(default_factory=lambda: PerturbConfig())
     """The robustness studies' perturbations of the training data (pose error, noise events)."""
+    # Self-calibration (issue #20; fastenerf/self_calibration.py): both off by default.
+    refine_poses: bool = False
+    """Learn a correction of every training pose (window grid) with the field (own Adam)."""
+    refine_translation: bool = True
+    """Also learn the camera centres' shifts (off: rotations only)."""
+    refine_lr: float = 1e-3
+    """Pose-correction lr at the start (rad, world units per step); decays to refine_lr_final."""
+    refine_lr_final: float = 1e-5
+    """Pose-correction learning rate at the end of the budget."""
+    refine_c2f_start: float = 0.1
+    """Coarse-to-fine (BARF): budget fraction where the encoding's finer levels (ngp hash
+    levels, vanilla frequency bands) start to fade in; before it only the coarsest."""
+    refine_c2f_end: float = 0.5
+    """Budget fraction where every level is on (<= refine_c2f_start: no schedule)."""
+    refine_gauge: Literal["mean", "first", "none"] = "mean"
+    """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift)."""
+    estimate_threshold: bool = False
+    """Learn the contrast thresholds' ratio C_pos/C_neg jointly with the field (their product
+    stays at scene.json's: the common scale is not observable)."""
+    threshold_lr: float = 1e-3
+    """Threshold learning rate (log units per step), following the field's lr schedule."""
+    threshold_per_pixel: bool = False
+    """Also learn per-pixel factors on the thresholds (mismatch), regularised towards 1."""
+    threshold_pixel_weight: float = 1.0
+    """Weight of the per-pixel factors' regulariser (mean squared log factor)."""
+    threshold_free_scale: bool = False
+    """Learn the common scale too (ill-posed: nothing holds it; for experiments)."""
 
     def validate(self, where: str = "train config") -> TrainConfig:
         """Check every value's type-free range; raise a one-line InputError naming the key."""
@@ -387,6 +414,7 @@ class TrainConfig:
             "rays_per_step",
             f"must be at least windows_per_step ({self.windows_per_step})",
         )
+        self._validate_self_calibration(where)
         if self.adam_betas is not None:
             _check(
                 len(self.adam_betas) == 2 and all(0.0 <= b < 1.0 for b in self.adam_betas),
@@ -396,6 +424,17 @@ class TrainConfig:
             )
         parse_options(self.backend, self.backend_options, f"{where} backend_options")
         return self
+
+    def _validate_self_calibration(self, where: str) -> None:
+        for key in ("refine_lr", "refine_lr_final", "threshold_lr"):
+            v = getattr(self, key)
+            _check(0 < v <= 1, where, key, f"must be in (0, 1], got {v}")
+        for key in ("refine_c2f_start", "refine_c2f_end"):
+            v = getattr(self, key)
+            _check(0 <= v <= 1, where, key, f"must be a budget fraction in [0, 1], got {v}")
+        gauges, w = ("mean", "first", "none"), self.threshold_pixel_weight
+        _check(self.refine_gauge in gauges, where, "refine_gauge", f"must be one of {gauges}")
+        _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:
         """A copy with every `None` replaced by its scene / device / backend default."""

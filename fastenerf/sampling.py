@@ -107,6 +107,10 @@ class RayBatch:
     rays_o, rays_d: (2B, 3) world units / unit; pix: (B,) flat pixel ids; channel: (B,) Bayer
     channel or None (mono); target: (B,) E(u; t0, t1] in log units; positive: (B,) bool,
     True for event pixels; n_windows: windows in the batch.
+    Only when the sampler is asked for them (self-calibration, issue #20): dirs (B, 3)
+    camera-frame directions of the pixels; pose_idx (2B,) int64 grid row of each ray's pose
+    (rays_o[i] is row pose_idx[i]'s centre); parts (B, 2) the target's polarity parts [a, b]
+    with E = a·C_pos + b·C_neg (`threshold.py`).
     """
 
     rays_o: torch.Tensor
@@ -116,6 +120,9 @@ class RayBatch:
     target: torch.Tensor
     positive: torch.Tensor
     n_windows: int
+    dirs: torch.Tensor | None = None
+    pose_idx: torch.Tensor | None = None
+    parts: torch.Tensor | None = None
 
 
 def _load_window_sum():
@@ -130,7 +137,8 @@ class RaySampler:
     """Pixels, rays and event targets for a batch of windows (see module docstring).
 
     index: the scene's EventIndex; rig: its Rig; windows: the WindowSampler; device: where rays
-    are made and rendered; use_kernel: None tries the Warp kernel, False forces numpy.
+    are made and rendered; use_kernel: None tries the Warp kernel, False forces numpy;
+    with_poses / with_parts: batches also carry dirs + pose_idx / parts (see RayBatch).
     """
 
     def __init__(
@@ -146,11 +154,14 @@ class RaySampler:
         seed: int = 0,
         use_kernel: bool | None = None,
         prefetch: int = 1,
+        with_poses: bool = False,
+        with_parts: bool = False,
     ):
         if prefetch < 1:
             raise InputError(f"sampler prefetch must be >= 1 (got {prefetch})")
         self.index, self.rig, self.windows = index, rig, windows
         self.prefetch = int(prefetch)
+        self.with_poses, self.with_parts = bool(with_poses), bool(with_parts)
         self._block: list[RayBatch] = []  # drawn batches not handed out yet
         self._block_state: dict | None = None  # RNG states the current block was drawn from
         self.device = torch.device(device)
@@ -214,10 +225,14 @@ class RaySampler:
             return None
         return kernel
 
-    def _kernel_query(self, kernel, arrays, pix, t0, t1, any_wraps=None) -> torch.Tensor:
+    def _kernel_query(
+        self, kernel, arrays, pix, t0, t1, any_wraps=None, thresholds=None
+    ) -> torch.Tensor:
         """any_wraps: whether some window wraps, when the caller knows it on the host (saves
-        reading it back from the device: a sync every step)."""
+        reading it back from the device: a sync every step); thresholds: (C_pos, C_neg)
+        instead of the index's."""
         idx = self.index
+        c_pos, c_neg = thresholds or (idx.pos_threshold, idx.neg_threshold)
         wraps = (t0 < idx.t_start) & idx.loop
         t0a = torch.where(wraps, torch.full_like(t0, idx.t_start - 1), t0)
         e = kernel(
@@ -227,8 +242,8 @@ class RaySampler:
             pix,
             t0a,
             t1,
-            idx.pos_threshold,
-            idx.neg_threshold,
+            c_pos,
+            c_neg,
             idx.polarity_offset,
         )
         if any_wraps if any_wraps is not None else bool(wraps.any()):
@@ -240,8 +255,8 @@ class RaySampler:
                 pix,
                 t0b,
                 torch.full_like(t1, idx.t_end),
-                idx.pos_threshold,
-                idx.neg_threshold,
+                c_pos,
+                c_neg,
                 idx.polarity_offset,
             )
         return e.float()
@@ -259,6 +274,31 @@ class RaySampler:
             )
         e = self.index.query(pix.cpu().numpy(), t0, t1)
         return torch.from_numpy(e).to(self.device)
+
+    def parts(self, pix: torch.Tensor, t0: np.ndarray, t1: np.ndarray) -> torch.Tensor:
+        """The target's polarity parts [a, b] (B, 2) float32: E = a·C_pos + b·C_neg, so
+        a = (1 + offset)·n_pos and b = (offset − 1)·n_neg of each window (t0, t1] (B,)."""
+        if self._kernel is not None:
+            args = (
+                pix,
+                torch.as_tensor(t0, device=self.device),
+                torch.as_tensor(t1, device=self.device),
+                bool(self.index.loop and np.any(np.asarray(t0) < self.index.t_start)),
+            )
+            k, arrays = self._kernel, self._kernel_arrays
+            a = self._kernel_query(k, arrays, *args, thresholds=(1.0, 0.0))
+            b = self._kernel_query(k, arrays, *args, thresholds=(0.0, 1.0))
+            return torch.stack([a, b], 1)
+        idx = self.index
+        t0a, t1a, t0b, t1b = idx.split_wrapped(t0, t1)
+        p = pix.cpu().numpy()
+        n, n_pos = idx.counts(p, t0a, t1a)
+        if idx.loop:
+            n2, n_pos2 = idx.counts(p, t0b, t1b)
+            n, n_pos = n + n2, n_pos + n_pos2
+        off = idx.polarity_offset
+        ab = np.stack([(1.0 + off) * n_pos, (off - 1.0) * (n - n_pos)], 1).astype(np.float32)
+        return torch.from_numpy(ab).to(self.device)
 
     # -- pixels ------------------------------------------------------------------------------
 
@@ -316,6 +356,15 @@ class RaySampler:
         b = self.n_windows * n
         rays_o = torch.stack([o0.reshape(k, b, 3), o1.reshape(k, b, 3)], 1)
         rays_d = torch.stack([d0.reshape(k, b, 3), d1.reshape(k, b, 3)], 1)
+        extras = [{} for _ in range(k)]
+        if self.with_poses:
+            rows = torch.stack([p0[win].reshape(k, b), p1[win].reshape(k, b)], 1)
+            for i, (e, d) in enumerate(zip(extras, dirs.reshape(k, b, 3), strict=True)):
+                e.update(dirs=d, pose_idx=rows[i].reshape(2 * b))
+        if self.with_parts:
+            ab = self.parts(pix, t0[win_np], t1[win_np]).reshape(k, b, 2)
+            for e, p in zip(extras, ab, strict=True):
+                e["parts"] = p
         pix, target, positive = pix.reshape(k, b), target.reshape(k, b), positive.reshape(k, b)
         channel = None if channel is None else channel.reshape(k, b)
         return [
@@ -327,6 +376,7 @@ class RaySampler:
                 target[i],
                 positive[i],
                 self.n_windows,
+                **extras[i],
             )
             for i in range(k)
         ]

@@ -42,6 +42,7 @@ from .run import (
     write_progress,
 )
 from .sampling import RaySampler, WindowSampler
+from .self_calibration import SelfCalibration
 
 HISTORY_MAX = 100_000
 # Batches the sampler draws at once: its host cost per block is about that of one batch.
@@ -81,6 +82,7 @@ class Trainer:
         self._build_data(scene)
         self.field: Field = make_field(self.cfg.backend, scene.config, self.cfg).to(self.device)
         self.optimizer = self._make_optimizer()
+        self.selfcal = self._make_self_calibration()  # None unless refine/estimate is on
         bg = scene_background(scene.config)
         self.background = None if bg is None else torch.tensor(bg, device=self.device)
         self.amp = bool(self.cfg.amp and self.device.type == "cuda")
@@ -160,6 +162,8 @@ class Trainer:
             device=self.device,
             seed=c.seed,
             prefetch=SAMPLER_PREFETCH,
+            with_poses=c.refine_poses,
+            with_parts=c.estimate_threshold,
         )
 
     def _observe_training_cameras(self) -> None:
@@ -176,6 +180,16 @@ class Trainer:
         return torch.optim.Adam(
             groups, lr=self.cfg.lr, betas=tuple(self.cfg.adam_betas), eps=self.cfg.adam_eps
         )
+
+    def _make_self_calibration(self) -> SelfCalibration | None:
+        if not SelfCalibration.wanted(self.cfg):
+            return None
+        sc, true_c2w = self.scene.config, None
+        if self.perturbation and self.perturbation.get("pose"):  # a study knows the truth
+            grid_t = self.windows.grid_times(np.arange(self.windows.n_views + 1))
+            true_c2w = torch.as_tensor(self.scene.rig().pose(grid_t), device=self.device)
+        thresholds = (sc.pos_threshold, sc.neg_threshold)
+        return SelfCalibration(self.cfg, self.sampler, thresholds, self.field, true_c2w)
 
     @property
     def rays_per_step_total(self) -> int:
@@ -197,6 +211,8 @@ class Trainer:
             "event_targets": self.sampler.target_backend,
             "amp": "bf16" if self.amp else "off",
             "device": str(self.device),
+            "pose_refinement": self.cfg.refine_poses,
+            "threshold_estimation": self.cfg.estimate_threshold,
             **self.field.built(),
         }
 
@@ -213,6 +229,7 @@ class Trainer:
                 "field": self.field.config_dict(),
                 "built": self.built(),
                 "perturbation": self.perturbation,
+                "self_calibration": None if self.selfcal is None else self.selfcal.report(),
                 "versions": {"torch": torch.__version__, "fastenerf": __version__},
             },
         )
@@ -257,6 +274,8 @@ class Trainer:
             self.field.train()
             # The named ranges are what benchmarks.profile_step attributes time to (a range
             # costs ~1 µs when no profiler runs).
+            if self.selfcal is not None:
+                self.selfcal.before_step(self.progress(), lr / self.cfg.lr)
             with record_function("grid_update"):
                 self.field.update(self.step_count)
             with record_function("sample_rays"):
@@ -268,6 +287,8 @@ class Trainer:
                     loss.backward()
                 with record_function("optimizer"):
                     self.optimizer.step()
+                    if self.selfcal is not None:
+                        self.selfcal.step()
                 self.nonfinite_run = 0
             else:  # never let a non-finite loss reach the weights
                 self.skipped_steps += 1
@@ -282,13 +303,16 @@ class Trainer:
     def _forward(self, batch):
         """Render the batch and compute the event loss; gradients zeroed for the backward."""
         cfg = self.cfg
+        rays_o, rays_d, target, reg = batch.rays_o, batch.rays_d, batch.target, None
+        if self.selfcal is not None:
+            rays_o, rays_d, target, reg = self.selfcal.apply(batch)
         with (
             record_function("render"),
             torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.amp),
         ):
             out = self.field.render(
-                batch.rays_o,
-                batch.rays_d,
+                rays_o,
+                rays_d,
                 near=self.scene.config.near,
                 background=self.background,
                 train=True,
@@ -296,13 +320,18 @@ class Trainer:
         with record_function("loss"):
             loss, parts = total_loss(
                 out,
-                batch.target,
+                target,
                 batch.channel,
                 gamma=cfg.gamma,
                 eps=cfg.log_eps,
                 distortion_weight=cfg.distortion_weight,
             )
+            if reg is not None:
+                loss = loss + reg
+                parts["threshold_reg"] = reg.detach()
             self.optimizer.zero_grad(set_to_none=True)
+            if self.selfcal is not None:
+                self.selfcal.zero_grad()
         return out, loss, parts
 
     def _record(self, batch, out, parts, loss_value: float, lr: float, dt: float) -> dict:
@@ -320,6 +349,8 @@ class Trainer:
             stats["samples_per_ray"] = int(out["n_samples"]) / n_rays
         if self.skipped_steps:
             stats["skipped_steps"] = self.skipped_steps
+        if self.selfcal is not None:
+            stats.update(self.selfcal.stats())
         self.history.append(stats)
         if len(self.history) > HISTORY_MAX:
             del self.history[: HISTORY_MAX // 2]
@@ -366,6 +397,8 @@ class Trainer:
         # no checkpoint is written and the last one on disk stays valid.
         finally:
             self.wall_seconds = time.perf_counter() - wall_start
+            if self.selfcal is not None:  # config.json records the final estimates
+                self.write_config()
             summary.update(
                 steps=self.step_count,
                 train_seconds=self.train_seconds,

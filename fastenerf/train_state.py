@@ -66,7 +66,7 @@ def trainer_state(tr: Trainer) -> dict[str, Any]:
     # a new dict: the sampler's own state must not change when a checkpoint is written
     lengths = None if lengths is None else torch.from_numpy(lengths)
     sampler = {**sampler, "windows": {**sampler["windows"], "lengths": lengths}}
-    return {
+    state = {
         "format": "fastenerf-checkpoint",
         "version": CHECKPOINT_VERSION,
         "backend": tr.cfg.backend,
@@ -84,6 +84,9 @@ def trainer_state(tr: Trainer) -> dict[str, Any]:
         "rng": rng,
         "sampler": sampler,
     }
+    if tr.selfcal is not None:  # learnt poses / thresholds (issue #20)
+        state["self_calibration"] = tr.selfcal.state_dict()
+    return state
 
 
 def progress_record(tr: Trainer, finished: bool) -> dict[str, Any]:
@@ -95,6 +98,7 @@ def progress_record(tr: Trainer, finished: bool) -> dict[str, Any]:
         "wall_seconds": tr.wall_seconds,
         "last_eval_psnr": tr.last_eval_psnr,
         "finished": finished,
+        **({"self_calibration": tr.selfcal.stats()} if tr.selfcal is not None else {}),
     }
 
 
@@ -146,6 +150,8 @@ def restore(tr: Trainer, ck: dict) -> None:
     try:
         tr.field.load_state_dict(ck["field"])
         tr.optimizer.load_state_dict(ck["optimizer"])
+        if tr.selfcal is not None:
+            tr.selfcal.load_state_dict(ck["self_calibration"])
         windows = ck["sampler"]["windows"]
         lengths = windows["lengths"]
         tr.sampler.load_state_dict(

@@ -415,6 +415,14 @@ class Viewer:
         imgui.text(f"{st.rays_per_s:,.0f} rays/s   {last.get('elapsed_s', 0.0):.1f} s trained")
         if "eval_psnr" in last and last["eval_psnr"] is not None:
             imgui.text(f"quick eval PSNR {last['eval_psnr']:.2f} dB")
+        if "pose_correction_deg" in last:  # --refine-poses
+            err = last.get("pose_error_deg")
+            imgui.text(
+                f"pose corrections {last['pose_correction_deg']:.3f} deg mean"
+                + ("" if err is None else f", error {err:.3f} deg")
+            )
+        if "threshold_pos" in last:  # --estimate-threshold
+            imgui.text(f"thresholds +{last['threshold_pos']:.4f} / -{last['threshold_neg']:.4f}")
         if st.done:
             imgui.text("training finished" if st.error is None else f"failed: {st.error}")
         if len(st.losses) >= 2 and implot.begin_plot("loss", imgui.ImVec2(-1, 180)):

@@ -45,6 +45,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="contrast threshold, log intensity (default 0.25)",
     )
     p.add_argument(
+        "--neg-threshold",
+        type=float,
+        default=None,
+        help="negative contrast threshold when it differs (default: --threshold)",
+    )
+    p.add_argument(
+        "--mismatch",
+        type=float,
+        default=0.0,
+        help="per-pixel threshold mismatch: Gaussian sigma, log intensity (default 0)",
+    )
+    p.add_argument(
         "--noise",
         type=float,
         default=0.0,
@@ -98,8 +110,17 @@ def run(args: argparse.Namespace) -> int:
     w, h = parse_size(args.size)
     from ..data.synth import load_mesh
     from ..data.synth.make import make_scene_result, resolve_scene, summary
+    from ..data.synth.simulator import SimulatorConfig
 
     source = resolve_scene(args.scene) if args.scene else load_mesh(args.mesh)
+    sim = SimulatorConfig(
+        pos_threshold=args.threshold,
+        neg_threshold=args.neg_threshold,
+        bayer=None if args.bayer == "mono" else "rggb",
+        mismatch=args.mismatch,
+        noise=args.noise,
+        seed=args.seed,
+    )
     res = make_scene_result(
         source,
         args.out,
@@ -114,6 +135,7 @@ def run(args: argparse.Namespace) -> int:
         fmt=args.format,
         supersample=args.supersample,
         progress=True,
+        sim=sim,
     )
     print(f"wrote {res.path} ({args.format}): {summary(res)}")
     return 0

@@ -90,6 +90,8 @@ class NGPField(Field):
     """
 
     backend = "ngp"
+    # None, or (n_levels,) weights of the hash levels (coarse-to-fine pose refinement)
+    level_weights: torch.Tensor | None = None
 
     def __init__(
         self,
@@ -171,6 +173,8 @@ class NGPField(Field):
     def _geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3)."""
         feats = hash_grid_encode(self._normalise(x.float()), self.table.float(), self.grid_cfg)
+        if self.level_weights is not None:
+            feats = feats * self.level_weights.repeat_interleave(self.grid_cfg.n_features)
         h = self.density_net(feats.to(self.density_net[0].weight.dtype))
         net = self.options.network
         sigma = trunc_exp(h[:, 0].float() + net.density_bias, net.max_log_density)

@@ -29,7 +29,12 @@ from .base import Field, RenderOutput, check_points
 
 
 class PositionalEncoding(nn.Module):
-    """x (N, D) -> [x, sin(2^k x), cos(2^k x)] for k < n_freqs, (N, D (1 + 2 n_freqs))."""
+    """x (N, D) -> [x, sin(2^k x), cos(2^k x)] for k < n_freqs, (N, D (1 + 2 n_freqs)).
+
+    band_weights: None, or (n_freqs,) weights of the bands (coarse-to-fine pose refinement).
+    """
+
+    band_weights: torch.Tensor | None = None
 
     def __init__(self, n_freqs: int):
         super().__init__()
@@ -42,7 +47,10 @@ class PositionalEncoding(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xb = (x[..., None, :] * self.freqs[:, None]).flatten(-2)
-        return torch.cat([x, torch.sin(xb), torch.cos(xb)], -1)
+        if self.band_weights is None:
+            return torch.cat([x, torch.sin(xb), torch.cos(xb)], -1)
+        w = self.band_weights.to(xb.dtype).repeat_interleave(x.shape[-1])
+        return torch.cat([x, torch.sin(xb) * w, torch.cos(xb) * w], -1)
 
 
 class NeRFMLP(nn.Module):

@@ -1,0 +1,53 @@
+"""Coarse-to-fine encodings for pose refinement (BARF, Lin et al. 2021).
+
+Fine encoding levels give pose gradients that point every which way (the image is sharp at
+the wrong place); BARF fades them in over part of training with a cosine window. Level k
+gets weight w_k(α) = (1 − cos(π · clamp(α − k, 0, 1))) / 2 as α grows over the schedule.
+
+- ngp: the hash grid's L levels; level 0 (the coarsest) is always on, α runs 1 → L;
+- vanilla: the positional encoding's frequency bands (the raw x is always kept), α 0 → bands.
+A field takes the weights as an attribute (`NGPField.level_weights`,
+`PositionalEncoding.band_weights`); None means every level at full weight (no multiply).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .fields.base import Field
+
+
+def cosine_window(alpha: float, n: int, device=None) -> torch.Tensor:
+    """(n,) float32 BARF weights of levels 0..n−1 at α (levels below α − 1 are 1)."""
+    x = (alpha - torch.arange(n, dtype=torch.float32, device=device)).clamp(0.0, 1.0)
+    return (1.0 - torch.cos(math.pi * x)) / 2.0
+
+
+def schedule_fraction(progress: float, start: float, end: float) -> float | None:
+    """Where training is in the schedule, in [0, 1); None when it is over or off (end <= start)."""
+    if end <= start:
+        return None
+    r = (progress - start) / (end - start)
+    return None if r >= 1.0 else max(0.0, r)
+
+
+def set_encoding_window(field: Field, progress: float, start: float, end: float) -> float | None:
+    """Set the field's level weights for training `progress` in [0, 1]; returns the fraction
+    of the schedule done (None once every level is on, or for a backend without levels)."""
+    r = schedule_fraction(progress, start, end)
+    if field.backend == "ngp":
+        n = field.grid_cfg.n_levels
+        field.level_weights = None if r is None else cosine_window(1 + r * (n - 1), n, _dev(field))
+    elif field.backend == "vanilla":
+        n = len(field.pos_enc.freqs)
+        w = None if r is None else cosine_window(r * n, n, _dev(field))
+        field.pos_enc.band_weights = w
+    else:
+        return None
+    return r
+
+
+def _dev(field: Field) -> torch.device:
+    return field.aabb.device if hasattr(field, "aabb") else next(field.parameters()).device

@@ -1,0 +1,124 @@
+"""Learnable corrections of the training poses on the window grid (issue #20).
+
+Every window starts and ends on a grid pose (`sampling.WindowSampler`), so a ray's camera is
+one row of the sampler's (n + 1)-pose table and a correction per row is a correction of
+every pose training sees. Row i learns (ω_i, u_i) in its CAMERA's frame (radians, world
+units), applied as the world-frame correction δ_i = (R_i ω_i, R_i u_i) = (w_i, v_i):
+
+    R'_i = Exp(w_i) · R_i        a turn about the camera centre
+    t'_i = t_i + v_i             a shift of the centre
+
+Camera-frame parameters let Adam scale each camera axis on its own: the roll about the
+optical axis gets far smaller gradients than pan and tilt, and in world coordinates it would
+share (and lose) their step sizes. The gauge is fixed in the world frame, where a rigid
+motion of the whole scene is (to first order) the same δ for every row: "mean" makes the
+world-frame corrections zero-mean, which removes exactly that motion; "first" keeps the
+first row fixed instead (the scene keeps that camera's frame, errors included); "none"
+leaves the scene free to drift. Rows no window uses (a loop's last row, the twin of its
+first) keep a zero correction and are left out of the gauge.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .se3 import relative_angle_deg, so3_exp
+
+GAUGES = ("mean", "first", "none")
+
+
+class PoseRefiner(nn.Module):
+    """Corrected camera-to-world poses and the rays through them.
+
+    grid_c2w: (G, 4, 4) the training poses of the grid rows (OpenCV camera-to-world);
+    used: (G,) bool, the rows windows use; gauge: one of GAUGES; true_c2w: optional (G, 4, 4)
+    exact poses (a study's unperturbed rig), only for the error stats; translation: False
+    learns rotations only (the centres stay).
+    Parameter `delta`: (G, 6) camera-frame [ω (rad), u (world units)] before the gauge fix.
+    """
+
+    def __init__(
+        self,
+        grid_c2w: torch.Tensor,
+        used: torch.Tensor,
+        gauge: str = "mean",
+        true_c2w: torch.Tensor | None = None,
+        translation: bool = True,
+    ):
+        super().__init__()
+        if gauge not in GAUGES:
+            raise ValueError(f"PoseRefiner: gauge must be one of {GAUGES}, got {gauge!r}")
+        if not bool(used.any()):
+            raise ValueError("PoseRefiner: no grid row is used")
+        self.gauge = gauge
+        self.register_buffer("base", grid_c2w.detach().float().clone())
+        mask = used.to(self.base.device, torch.float32)
+        if gauge == "first":
+            mask[int(used.nonzero()[0, 0])] = 0.0
+        self.register_buffer("used", used.to(self.base.device, torch.bool))
+        cols = torch.tensor([1.0] * 3 + [float(translation)] * 3, device=mask.device)
+        self.register_buffer("mask", mask[:, None] * cols)
+        self.register_buffer("true_c2w", None if true_c2w is None else true_c2w.float().clone())
+        self.delta = nn.Parameter(torch.zeros(len(grid_c2w), 6, device=self.base.device))
+
+    def corrections(self) -> torch.Tensor:
+        """The gauge-fixed world-frame corrections δ = [w, v], (G, 6): zero on unused rows (and
+        on a fixed first row)."""
+        R = self.base[:, :3, :3]
+        d = torch.einsum("gij,gkj->gki", R, (self.delta * self.mask).view(-1, 2, 3))
+        d = d.reshape(-1, 6)
+        if self.gauge == "mean":
+            rows = self.mask[:, :1]
+            d = d - rows * (d.sum(0, keepdim=True) / rows.sum())
+        return d
+
+    def rotations(self, d: torch.Tensor | None = None) -> torch.Tensor:
+        """Corrected rotations R' = Exp(ω) R, (G, 3, 3)."""
+        d = self.corrections() if d is None else d
+        return so3_exp(d[:, :3]) @ self.base[:, :3, :3]
+
+    def c2w(self) -> torch.Tensor:
+        """Corrected camera-to-world poses, (G, 4, 4) float32."""
+        d = self.corrections()
+        out = self.base.clone()
+        out[:, :3, :3] = self.rotations(d)
+        out[:, :3, 3] = self.base[:, :3, 3] + d[:, 3:]
+        return out
+
+    def rays(self, dirs: torch.Tensor, pose_idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays through the corrected poses, differentiable w.r.t. the corrections.
+
+        dirs: (B, 3) camera-frame directions of B pixels; pose_idx: (kB,) int64 grid row of
+        each ray, the B pixels seen from k poses in turn (k = 2: at t0, then at t1).
+        Returns rays_o (kB, 3) world units and rays_d (kB, 3) unit; bit-identical to
+        `render.generate_rays` on the uncorrected rows while δ = 0.
+        """
+        d = self.corrections()
+        R = self.rotations(d)[pose_idx]
+        o = (self.base[:, :3, 3] + d[:, 3:])[pose_idx]
+        k = pose_idx.shape[0] // dirs.shape[0]
+        rd = torch.einsum("nij,nj->ni", R, dirs.to(R.dtype).repeat(k, 1))
+        return o.contiguous(), nn.functional.normalize(rd, dim=-1)
+
+    @torch.no_grad()
+    def stats(self) -> dict[str, float]:
+        """Mean / max size of the corrections on the used rows (degrees, world units) and,
+        with true poses, the corrected poses' remaining rotation error and centre offset."""
+        d = self.corrections()[self.used].double()
+        rot = d[:, :3].norm(dim=-1).rad2deg()
+        vals = {
+            "pose_correction_deg": rot.mean(),
+            "pose_correction_max_deg": rot.max(),
+            "pose_shift": d[:, 3:].norm(dim=-1).mean(),
+        }
+        if self.true_c2w is not None:
+            true = self.true_c2w[self.used].double()
+            R = so3_exp(d[:, :3]) @ self.base[self.used, :3, :3].double()
+            err = relative_angle_deg(R, true[:, :3, :3])
+            centre = self.base[self.used, :3, 3].double() + d[:, 3:]
+            vals["pose_error_deg"] = err.mean()
+            vals["pose_error_max_deg"] = err.max()
+            vals["pose_centre_error"] = (centre - true[:, :3, 3]).norm(dim=-1).mean()
+        keys = list(vals)
+        return dict(zip(keys, torch.stack([vals[k] for k in keys]).tolist(), strict=True))

@@ -1,0 +1,55 @@
+"""Small rotations in torch, differentiable everywhere (pose refinement, issue #20).
+
+`so3_exp` is Rodrigues' formula with Taylor series near zero: the textbook form divides by
+|ω| and has a NaN gradient at ω = 0, which is exactly where every pose correction starts.
+`rotation_angle` measures a rotation's angle from its matrix with atan2, which keeps full
+precision at small angles where arccos((tr − 1) / 2) loses half the digits.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+# Below this |ω|² (rad²) the Taylor series are exact to float64 rounding (next terms ~θ⁶).
+_SMALL = 1e-6
+
+
+def hat(w: torch.Tensor) -> torch.Tensor:
+    """Skew matrices [ω]× (..., 3, 3) of vectors ω (..., 3): [ω]× v = ω × v."""
+    x, y, z = w.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], -1).reshape(*w.shape[:-1], 3, 3)
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (..., 3, 3) of axis-angle vectors ω (..., 3) radians (Rodrigues).
+
+    R = I + A [ω]× + B [ω]×², A = sin θ / θ, B = (1 − cos θ) / θ², θ = |ω|; values and
+    gradients finite at ω = 0 (A, B from their series there).
+    """
+    th2 = (w * w).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    small = th2 < _SMALL
+    th2_safe = torch.where(small, torch.ones_like(th2), th2)
+    th = th2_safe.sqrt()
+    a = torch.where(small, 1 - th2 / 6 + th2 * th2 / 120, torch.sin(th) / th)
+    b = torch.where(small, 0.5 - th2 / 24 + th2 * th2 / 720, (1 - torch.cos(th)) / th2_safe)
+    k = hat(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand_as(k)
+    return eye + a * k + b * (k @ k)
+
+
+def rotation_angle(R: torch.Tensor) -> torch.Tensor:
+    """Angle of rotation matrices R (..., 3, 3), radians in [0, π], (...)."""
+    s = 0.5 * torch.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        -1,
+    ).norm(dim=-1)
+    c = 0.5 * (R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2] - 1)
+    return torch.atan2(s, c)
+
+
+def relative_angle_deg(R_a: torch.Tensor, R_b: torch.Tensor) -> torch.Tensor:
+    """Geodesic angle between rotations R_a, R_b (..., 3, 3), degrees (...)."""
+    return rotation_angle(R_a.transpose(-1, -2) @ R_b) * (180.0 / math.pi)

@@ -1,0 +1,210 @@
+"""Self-calibration: the training poses and contrast thresholds learnt with the field (#20).
+
+`SelfCalibration` owns the parts that are switched on (`pose_refine.PoseRefiner`,
+`threshold.ThresholdEstimator`), their own Adam (one group each, own learning rates) and
+the coarse-to-fine schedule of the field's encoding. The trainer asks it, per step, for
+the rays and targets of a batch (`apply`), steps it after the field's optimiser (`step`)
+and logs its `stats`; `report` goes into RUN/config.json. Guards: the optimiser step is
+skipped when a gradient is not finite (a NaN would stay in Adam's moments for good), the
+threshold parameters are projected into their bounds after each step, and pose corrections
+are gauge-fixed (`pose_refine`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import torch
+
+from .coarse_to_fine import set_encoding_window
+from .config import TrainConfig
+from .fields.base import Field
+from .pose_refine import PoseRefiner
+from .sampling import RayBatch, RaySampler
+from .threshold import ThresholdEstimator
+
+ADAM_BETAS = (0.9, 0.999)
+ADAM_EPS = 1e-12  # pose gradients can be small; 1e-8 would damp their steps
+
+
+def used_rows(sampler: RaySampler) -> torch.Tensor:
+    """(G,) bool: the grid rows some window starts or ends on (a loop never uses its last)."""
+    ws = sampler.windows
+    used = torch.zeros(ws.n_views + 1, dtype=torch.bool)
+    used[torch.from_numpy(np.unique(ws.pose_index(np.arange(ws.n_views + 1))))] = True
+    return used
+
+
+class SelfCalibration:
+    """The learnt calibration of one training run (see the module docstring).
+
+    cfg: the resolved TrainConfig; sampler: the run's RaySampler (built with_poses /
+    with_parts as cfg asks); thresholds: scene.json's (C_pos, C_neg); field: the field whose
+    encoding the coarse-to-fine schedule weights; true_c2w: optional (G, 4, 4) exact grid
+    poses (a pose-error study's unperturbed rig), for the error stats.
+    """
+
+    def __init__(
+        self,
+        cfg: TrainConfig,
+        sampler: RaySampler,
+        thresholds: tuple[float, float],
+        field: Field,
+        true_c2w: torch.Tensor | None = None,
+    ):
+        self.cfg, self.field = cfg, field
+        self.poses: PoseRefiner | None = None
+        self.thresholds: ThresholdEstimator | None = None
+        groups = []
+        if cfg.refine_poses:
+            self.poses = PoseRefiner(
+                sampler.grid_c2w,
+                used_rows(sampler),
+                cfg.refine_gauge,
+                true_c2w,
+                translation=cfg.refine_translation,
+            )
+            groups.append({"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"})
+        if cfg.estimate_threshold:
+            self.thresholds = ThresholdEstimator(
+                *thresholds,
+                sampler.n_pix,
+                per_pixel=cfg.threshold_per_pixel,
+                free_scale=cfg.threshold_free_scale,
+                pixel_weight=cfg.threshold_pixel_weight,
+                device=sampler.device,
+            )
+            params = [p for p in self.thresholds.parameters() if p.requires_grad]
+            groups.append({"params": params, "lr": cfg.threshold_lr, "name": "thresholds"})
+        if not groups:
+            raise ValueError("SelfCalibration: neither refine_poses nor estimate_threshold is on")
+        self.optimizer = torch.optim.Adam(groups, betas=ADAM_BETAS, eps=ADAM_EPS)
+        self.skipped_steps = 0  # steps whose gradients were not finite
+        self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
+
+    @classmethod
+    def wanted(cls, cfg: TrainConfig) -> bool:
+        return bool(cfg.refine_poses or cfg.estimate_threshold)
+
+    # -- per step ----------------------------------------------------------------------------
+
+    def before_step(self, progress: float, field_lr_scale: float) -> None:
+        """Learning rates and the encoding window for training `progress` in [0, 1].
+
+        field_lr_scale: the field's lr now over its initial lr (warm-up and decay), which the
+        threshold lr follows; the pose lr decays on its own from refine_lr to refine_lr_final.
+        """
+        c = self.cfg
+        for g in self.optimizer.param_groups:
+            if g["name"] == "poses":
+                g["lr"] = c.refine_lr * (c.refine_lr_final / c.refine_lr) ** progress
+            else:
+                g["lr"] = c.threshold_lr * field_lr_scale
+        if self.poses is not None:
+            self.c2f = set_encoding_window(
+                self.field, progress, c.refine_c2f_start, c.refine_c2f_end
+            )
+
+    def apply(
+        self, batch: RayBatch
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """rays_o, rays_d (2B, 3), target (B,) and a regulariser (scalar or None) of a batch,
+        differentiable w.r.t. the learnt calibration."""
+        rays_o, rays_d, target, reg = batch.rays_o, batch.rays_d, batch.target, None
+        if self.poses is not None:
+            if batch.pose_idx is None:
+                raise ValueError("SelfCalibration: the sampler was built without with_poses")
+            rays_o, rays_d = self.poses.rays(batch.dirs, batch.pose_idx)
+        if self.thresholds is not None:
+            if batch.parts is None:
+                raise ValueError("SelfCalibration: the sampler was built without with_parts")
+            target = self.thresholds.target(batch.parts, batch.pix)
+            reg = self.thresholds.regulariser(batch.pix)
+        return rays_o, rays_d, target, reg
+
+    def zero_grad(self) -> None:
+        self.optimizer.zero_grad(set_to_none=True)
+
+    def step(self) -> bool:
+        """One optimiser step unless a gradient is not finite (then none; counted in
+        `skipped_steps`); returns whether it stepped."""
+        grads = [p.grad for g in self.optimizer.param_groups for p in g["params"]]
+        grads = [g for g in grads if g is not None]
+        if grads and not bool(torch.stack([torch.isfinite(g).all() for g in grads]).all()):
+            self.skipped_steps += 1
+            self.zero_grad()
+            return False
+        self.optimizer.step()
+        if self.thresholds is not None:
+            self.thresholds.project()
+        return True
+
+    # -- reporting ---------------------------------------------------------------------------
+
+    def stats(self) -> dict[str, float]:
+        """Step stats (metrics.jsonl, the viewer): the pose and threshold estimates."""
+        out: dict[str, Any] = {}
+        if self.poses is not None:
+            out.update(self.poses.stats())
+            out["c2f"] = 1.0 if self.c2f is None else self.c2f
+        if self.thresholds is not None:
+            out.update(self.thresholds.stats())
+        if self.skipped_steps:
+            out["calibration_skipped_steps"] = self.skipped_steps
+        return out
+
+    def report(self) -> dict[str, Any]:
+        """What config.json records: the options' results (estimates, corrections' sizes)."""
+        out: dict[str, Any] = {"stats": self.stats()}
+        if self.thresholds is not None:
+            est = self.thresholds
+            pos, neg = est.thresholds().tolist()
+            out["thresholds"] = {
+                "start": {"pos": est.start[0], "neg": est.start[1]},
+                "estimate": {"pos": pos, "neg": neg, "ratio": pos / neg},
+                "learnt": "ratio and scale" if self.cfg.threshold_free_scale else "ratio",
+                "per_pixel": est.pixel is not None,
+            }
+        if self.poses is not None:
+            out["poses"] = {
+                "rows": int(self.poses.used.sum()),
+                "gauge": self.poses.gauge,
+                "corrections": "world-frame [rotation vector (rad), shift (world units)]",
+            }
+        return _finite(out)
+
+    def corrections(self) -> np.ndarray | None:
+        """(G, 6) float64 gauge-fixed pose corrections, or None without pose refinement."""
+        if self.poses is None:
+            return None
+        with torch.no_grad():
+            return self.poses.corrections().double().cpu().numpy()
+
+    # -- checkpoints -------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "poses": None if self.poses is None else self.poses.state_dict(),
+            "thresholds": None if self.thresholds is None else self.thresholds.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "skipped_steps": self.skipped_steps,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if self.poses is not None:
+            self.poses.load_state_dict(state["poses"])
+        if self.thresholds is not None:
+            self.thresholds.load_state_dict(state["thresholds"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.skipped_steps = int(state.get("skipped_steps", 0))
+
+
+def _finite(obj: Any) -> Any:
+    """JSON-safe: non-finite floats become None (config.json must stay valid JSON)."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj

@@ -1,0 +1,510 @@
+"""Self-calibration (issue #20): pose refinement recovers a known perturbation, thresholds stay
+positive and finite, the ratio of biased thresholds is estimated, both options are recorded
+and checkpointed, and with both off a training step is what it was before.
+
+The pose and ratio tests train only the calibration against a frozen field: a smooth textured
+ball evaluated in closed form (`BallField`), whose events come from the real simulator on the
+real sampler's pose grid, so the only unknowns are the ones being learnt."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from fastenerf.coarse_to_fine import cosine_window, set_encoding_window
+from fastenerf.config import (
+    IntrinsicsConfig,
+    PerturbConfig,
+    SceneConfig,
+    TrainConfig,
+    TrajectoryConfig,
+)
+from fastenerf.data.events import EventIndex
+from fastenerf.data.formats.native import load_scene
+from fastenerf.data.rig import Rig
+from fastenerf.data.synth.simulator import EventSimulator, SimulatorConfig
+from fastenerf.errors import InputError
+from fastenerf.fields.base import Field
+from fastenerf.losses import event_loss, total_loss
+from fastenerf.perturb import perturb_poses
+from fastenerf.pose_refine import PoseRefiner
+from fastenerf.render import camera_directions, generate_rays
+from fastenerf.sampling import RaySampler, WindowSampler
+from fastenerf.se3 import relative_angle_deg, so3_exp
+from fastenerf.self_calibration import SelfCalibration, used_rows
+from fastenerf.threshold import C_MAX, C_MIN, ThresholdEstimator
+from fastenerf.train import Trainer
+
+# ---------------------------------------------------------------------------------- rotations
+
+
+def test_so3_exp_matches_scipy_from_tiny_to_large_angles():
+    rng = np.random.default_rng(0)
+    axes = rng.normal(size=(40, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    w = axes * np.geomspace(1e-9, 3.0, 40)[:, None]
+    got = so3_exp(torch.from_numpy(w)).numpy()
+    np.testing.assert_allclose(got, Rotation.from_rotvec(w).as_matrix(), atol=1e-14)
+    ang = relative_angle_deg(torch.eye(3, dtype=torch.float64), torch.from_numpy(got)).numpy()
+    np.testing.assert_allclose(ang, np.rad2deg(np.geomspace(1e-9, 3.0, 40)), rtol=1e-9)
+
+
+def test_so3_exp_gradient_is_finite_at_zero():
+    """Every correction starts at ω = 0, where the textbook sin θ / θ has a NaN gradient."""
+    w = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)
+    (so3_exp(w) * torch.arange(36.0, dtype=torch.float64).reshape(4, 3, 3)).sum().backward()
+    assert torch.isfinite(w.grad).all() and w.grad.abs().sum() > 0
+    # the guard is what makes it finite: the unguarded formula's gradient at 0 is NaN
+    v = torch.zeros(3, dtype=torch.float64, requires_grad=True)
+    th = v.norm()
+    (torch.sin(th) / th).backward()
+    assert torch.isnan(v.grad).all()
+
+
+# ---------------------------------------------------------------------------- a frozen field
+
+
+class BallField(Field):
+    """Three textured balls (radius 0.45) around the origin, in closed form: density a steep
+    sigmoid of the distance to the nearest centre, colour smooth sinusoids of the position;
+    rendered with 48 uniform samples over t in [1, 4] (the camera is 2.5 away).
+    Differentiable w.r.t. the rays. Off-centre silhouettes make every rotation axis of the
+    camera observable (a single centred ball would leave the roll to its texture)."""
+
+    backend = "ball"
+    centres = torch.tensor([[0.7, 0.1, 0.0], [-0.6, 0.3, 0.5], [0.0, -0.45, -0.6]])
+
+    def density(self, x):
+        r = (x[:, None] - self.centres.to(x.dtype)).norm(dim=-1).min(-1).values
+        return 40.0 * torch.sigmoid(25.0 * (0.45 - r))
+
+    def color(self, x, d=None):
+        ph = torch.tensor([0.0, 1.0, 2.0], dtype=x.dtype)
+        return 0.5 + 0.35 * torch.sin(4.0 * x[:, :1] + ph) * torch.cos(3.0 * x[:, 1:2] - ph)
+
+    def render(self, rays_o, rays_d, *, near, background, train):
+        t = torch.linspace(1.0, 4.0, 48, dtype=rays_o.dtype)
+        x = rays_o[:, None] + rays_d[:, None] * t[None, :, None]  # (R, S, 3)
+        sigma = self.density(x.reshape(-1, 3)).reshape(x.shape[:2])
+        rgb = self.color(x.reshape(-1, 3)).reshape(*x.shape[:2], 3)
+        alpha = 1 - torch.exp(-sigma * (t[1] - t[0]))
+        trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+        w = alpha * trans
+        return {"rgb": (w[..., None] * rgb).sum(1), "opacity": w.sum(1)}
+
+
+def ball_scene(n_views=40, **kw) -> SceneConfig:
+    return SceneConfig(
+        name="ball",
+        width=48,
+        height=36,
+        intrinsics=IntrinsicsConfig(fx=45.0, fy=45.0, cx=24.0, cy=18.0),
+        trajectory=TrajectoryConfig(
+            kind="turntable", radius=2.5, elevation_deg=15.0, period_us=n_views * 1000
+        ),
+        t_start_us=0,
+        t_end_us=n_views * 1000,
+        n_views=n_views,
+        loop=True,
+        background=None,
+        sim_log_eps=1e-3,
+        **kw,
+    ).validate()
+
+
+def ball_events(cfg: SceneConfig, field: Field, sim: SimulatorConfig):
+    """The simulator's events of the field's frames at the grid times (a closed loop)."""
+    rig = Rig.from_scene(cfg)
+    t = np.arange(cfg.n_views, dtype=np.int64) * 1000
+    dirs = camera_directions(rig.intrinsics)
+    frames = []
+    with torch.no_grad():
+        for c2w in rig.pose(t):
+            o, d = generate_rays(dirs.double(), torch.from_numpy(c2w))
+            frames.append(field.render(o, d, near=0, background=None, train=False)["rgb"])
+    linear = torch.stack(frames).reshape(len(t), 36, 48, 3).numpy() ** 2.2
+    simulator = EventSimulator(48, 36, sim)
+    simulator.add_frames(linear, t)
+    simulator.close_loop(cfg.t_end_us)
+    return rig, simulator.finish((0, cfg.t_end_us))
+
+
+def calibration_run(cfg, train_cfg, events, rig, steps, true_c2w=None, seed=0):
+    """Train only the calibration against the frozen BallField; returns it."""
+    index = EventIndex(
+        events, cfg.pos_threshold, cfg.neg_threshold, t_start=0, t_end=cfg.t_end_us, loop=True
+    )
+    windows = WindowSampler(cfg.n_views, 0, cfg.t_end_us, 1, 4, seed=seed)
+    sampler = RaySampler(
+        index,
+        rig,
+        windows,
+        rays_per_step=192,
+        windows_per_step=8,
+        neg_ratio=0.1,
+        seed=seed,
+        use_kernel=False,
+        with_poses=train_cfg.refine_poses,
+        with_parts=train_cfg.estimate_threshold,
+    )
+    field = BallField()
+    cal = SelfCalibration(
+        train_cfg, sampler, (cfg.pos_threshold, cfg.neg_threshold), field, true_c2w
+    )
+    for step in range(steps):
+        cal.before_step(step / steps, 1.0)
+        batch = sampler.sample()
+        rays_o, rays_d, target, _ = cal.apply(batch)
+        rgb = field.render(rays_o, rays_d, near=0, background=None, train=True)["rgb"]
+        b = len(target)
+        loss = event_loss(rgb[:b], rgb[b:], target, batch.channel, eps=cfg.sim_log_eps)
+        cal.zero_grad()
+        loss.backward()
+        assert cal.step()
+    return cal, sampler
+
+
+@pytest.fixture(scope="module")
+def ball():
+    cfg = ball_scene()
+    field = BallField()
+    rig, events = ball_events(cfg, field, SimulatorConfig(pos_threshold=0.25))
+    return cfg, rig, events
+
+
+@pytest.mark.slow
+def test_refinement_recovers_a_known_perturbation(ball):
+    cfg, rig, events = ball
+    grid_t = WindowSampler(cfg.n_views, 0, cfg.t_end_us, 1, 4).grid_times(np.arange(41))
+    bad_rig, report = perturb_poses(rig, 2.0, seed=5, grid_t=grid_t)
+    true_c2w = torch.as_tensor(rig.pose(grid_t))
+    # the frozen field fixes the gauge: the corrections can (and must) find the truth itself
+    tc = TrainConfig(refine_poses=True, refine_lr=5e-3, refine_lr_final=5e-4, refine_gauge="none")
+    cal, _ = calibration_run(cfg, tc, events, bad_rig, 120, true_c2w)
+    st = cal.stats()
+    # poses start 2° off (exactly: the perturbation is a rotation by 2° about each centre);
+    # rotations and shifts are both learnt, and trade off a little (lateral shift ≈ pan)
+    assert abs(report["grid"]["measured_mean_deg"] - 2.0) < 1e-6
+    assert st["pose_error_deg"] < 0.8, st
+    assert st["pose_centre_error"] < 0.05, st
+
+
+def test_gauges():
+    """mean: the corrections sum to zero over the used rows; first: the first row stays; the
+    loop's last row (the first's twin) is never corrected."""
+    cfg = ball_scene(n_views=6)
+    rig = Rig.from_scene(cfg)
+    grid = torch.as_tensor(rig.pose(np.arange(7) * 1000), dtype=torch.float32)
+    used = torch.tensor([True] * 6 + [False])
+    for gauge in ("mean", "first", "none"):
+        pr = PoseRefiner(grid, used, gauge)
+        with torch.no_grad():
+            pr.delta.copy_(torch.randn(7, 6))
+        d = pr.corrections()
+        assert torch.equal(d[6], torch.zeros(6))
+        if gauge == "mean":
+            assert d[:6].sum(0).abs().max() < 1e-6
+        if gauge == "first":
+            assert torch.equal(d[0], torch.zeros(6)) and d[1:6].abs().min() > 0
+    with pytest.raises(ValueError, match="gauge"):
+        PoseRefiner(grid, used, "median")
+
+
+def test_zero_corrections_give_the_samplers_rays_bit_for_bit(ball):
+    cfg, rig, events = ball
+    index = EventIndex(events, 0.25, 0.25, t_start=0, t_end=cfg.t_end_us, loop=True)
+    windows = WindowSampler(cfg.n_views, 0, cfg.t_end_us, 1, 4)
+    sampler = RaySampler(
+        index, rig, windows, rays_per_step=64, windows_per_step=4, neg_ratio=0.1, with_poses=True
+    )
+    batch = sampler.sample()
+    pr = PoseRefiner(sampler.grid_c2w, used_rows(sampler), "mean")
+    o, d = pr.rays(batch.dirs, batch.pose_idx)
+    assert torch.equal(o, batch.rays_o) and torch.equal(d, batch.rays_d)
+    assert not used_rows(sampler)[-1]  # a loop's last grid row is its first
+
+
+# --------------------------------------------------------------------------------- thresholds
+
+
+def test_parts_give_the_target_with_any_thresholds(random_stream):
+    """E = a·C_pos + b·C_neg for the sampler's windows, wrapped ones included, through both
+    the Warp kernel and numpy, with a polarity offset."""
+    ev = random_stream(4000, 16, 12, 100_000)
+    cfg = SceneConfig(
+        name="s",
+        width=16,
+        height=12,
+        intrinsics=IntrinsicsConfig(fx=14.0, fy=14.0, cx=8.0, cy=6.0),
+        trajectory=TrajectoryConfig(kind="turntable", radius=3.0, period_us=100_000),
+        t_start_us=0,
+        t_end_us=100_000,
+        n_views=20,
+        polarity_offset=-0.2,
+    ).validate()
+    index = EventIndex(ev, 0.3, 0.2, -0.2, t_start=0, t_end=100_000, loop=True)
+    for kernel in (None, False):
+        windows = WindowSampler(20, 0, 100_000, 1, 8)
+        s = RaySampler(
+            index,
+            Rig.from_scene(cfg),
+            windows,
+            rays_per_step=400,
+            windows_per_step=8,
+            neg_ratio=0.2,
+            use_kernel=kernel,
+            with_parts=True,
+        )
+        if kernel is None:
+            assert s.target_backend == "warp"
+        b = s.sample()
+        np.testing.assert_allclose((b.parts * torch.tensor([0.3, 0.2])).sum(1), b.target, atol=1e-5)
+        n_pos, n_neg = b.parts[:, 0] / 0.8, -b.parts[:, 1] / 1.2
+        assert (n_pos >= 0).all() and (n_neg >= 0).all() and (n_pos + n_neg).sum() > 0
+        torch.testing.assert_close(n_pos, n_pos.round(), atol=1e-4, rtol=0)
+
+
+def test_thresholds_stay_positive_and_finite_under_extreme_gradients():
+    def run(guarded: bool):
+        tc = TrainConfig(estimate_threshold=True, threshold_lr=0.5, threshold_per_pixel=True)
+        est = ThresholdEstimator(0.25, 0.25, 4, per_pixel=True, free_scale=True)
+        opt = torch.optim.Adam([p for p in est.parameters()], lr=tc.threshold_lr)
+        for g in [1e30, -1e30] * 60 + [math.inf, math.nan, 1e38]:
+            opt.zero_grad()
+            for p in est.parameters():
+                p.grad = torch.full_like(p, g)
+            if guarded:
+                if all(torch.isfinite(p.grad).all() for p in est.parameters()):
+                    opt.step()
+                est.project()
+            else:
+                opt.step()
+        return est.thresholds(torch.arange(4)), est
+
+    c, est = run(guarded=True)
+    assert torch.isfinite(c).all() and (c >= C_MIN * 0.999).all() and (c <= C_MAX * 1.001).all()
+    assert all(torch.isfinite(p).all() for p in est.parameters())
+    unguarded, _ = run(guarded=False)
+    assert not torch.isfinite(unguarded).all()  # NaN from the inf / NaN gradients
+
+
+def test_self_calibration_skips_a_non_finite_step():
+    cfg = ball_scene(n_views=6)
+    index = EventIndex(
+        __import__("fastenerf.data.events", fromlist=["EventStream"]).EventStream.from_arrays(
+            [1, 2], [1, 2], [1000, 2000], [1, -1], 48, 36
+        ),
+        0.25,
+        0.25,
+        t_start=0,
+        t_end=6000,
+        loop=True,
+    )
+    s = RaySampler(
+        index,
+        Rig.from_scene(cfg),
+        WindowSampler(6, 0, 6000, 1, 2),
+        rays_per_step=8,
+        windows_per_step=2,
+        neg_ratio=0.5,
+        use_kernel=False,
+        with_parts=True,
+    )
+    cal = SelfCalibration(TrainConfig(estimate_threshold=True), s, (0.25, 0.25), BallField())
+    cal.thresholds.log_ratio.grad = torch.tensor(math.nan)
+    assert not cal.step() and cal.stats()["calibration_skipped_steps"] == 1
+    assert cal.stats()["threshold_ratio"] == 1.0
+    with pytest.raises(InputError, match="start thresholds"):
+        ThresholdEstimator(0.0, 0.25, 4)
+
+
+def test_ratio_of_biased_thresholds_is_estimated(ball):
+    """Events made with C+ = 0.3, C- = 0.2; the run starts from 0.25 / 0.25 and learns the
+    ratio (1.5) while the product stays at the start's."""
+    cfg, rig, _ = ball
+    _, events = ball_events(cfg, BallField(), SimulatorConfig(pos_threshold=0.3, neg_threshold=0.2))
+    tc = TrainConfig(estimate_threshold=True, threshold_lr=0.02)
+    cal, _ = calibration_run(cfg, tc, events, rig, 60)
+    st = cal.stats()
+    assert abs(st["threshold_ratio"] / 1.5 - 1) < 0.1, st
+    assert abs(st["threshold_pos"] * st["threshold_neg"] - 0.0625) < 1e-6
+
+
+# ---------------------------------------------------------------------------- coarse-to-fine
+
+
+def test_cosine_window():
+    np.testing.assert_allclose(cosine_window(0.0, 4), [0, 0, 0, 0])
+    np.testing.assert_allclose(cosine_window(1.5, 4), [1, 0.5, 0, 0], atol=1e-7)
+    np.testing.assert_allclose(cosine_window(4.0, 4), [1, 1, 1, 1])
+
+
+@pytest.mark.parametrize("backend", ["ngp", "vanilla"])
+def test_coarse_to_fine_silences_the_fine_levels(backend, scene_config):
+    from fastenerf.fields import make_field
+
+    sc = scene_config(32, 24)
+    opts = {"ngp": {"n_levels": 4, "log2_table_size": 10, "max_resolution": 32}, "vanilla": {}}
+    field = make_field(backend, sc, TrainConfig(backend=backend, backend_options=opts[backend]))
+    x = torch.rand(64, 3) * 1.6 - 0.8
+    assert set_encoding_window(field, 0.0, 0.1, 0.5) == 0.0  # before the start: coarsest only
+    if backend == "ngp":
+        assert torch.equal(field.level_weights, torch.tensor([1.0, 0, 0, 0]))
+        field.density(x).sum().backward()
+        off = field.grid_cfg.level_offsets
+        assert field.table.grad[off[1] :].abs().max() == 0
+        assert field.table.grad[: off[1]].abs().max() > 0
+    else:
+        enc = field.pos_enc(x)
+        assert enc[:, 3:].abs().max() == 0 and torch.equal(enc[:, :3], x)
+    assert 0 < set_encoding_window(field, 0.3, 0.1, 0.5) < 1
+    assert set_encoding_window(field, 0.5, 0.1, 0.5) is None  # every level on: no weights
+    assert (field.level_weights if backend == "ngp" else field.pos_enc.band_weights) is None
+
+
+# ------------------------------------------------------------------------------- the trainer
+
+TINY = dict(
+    steps=4,
+    rays_per_step=16,
+    windows_per_step=2,
+    eval_every_s=0,
+    checkpoint_every_s=0,
+    log_every=1,
+    device="cpu",
+    lr=5e-3,
+)
+VANILLA_TINY = {"depth": 2, "width": 16, "pos_freqs": 4, "dir_freqs": 2, "n_coarse": 8, "n_fine": 8}
+
+
+def tiny(**kw):
+    from fastenerf.config import train_preset
+
+    return train_preset("fast", "vanilla", backend_options=dict(VANILLA_TINY), **{**TINY, **kw})
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene):
+    return load_scene(tiny_scene)
+
+
+def field_state(tr):
+    return {k: v.detach().clone() for k, v in tr.field.state_dict().items()}
+
+
+def test_options_off_step_is_what_it_was(scene, tmp_path):
+    """With both options off, Trainer.step is the step it was before self-calibration: the
+    sampler's rays and targets, the event loss, one Adam step, bit for bit."""
+    tr = Trainer(scene, tiny(), tmp_path / "a")
+    assert tr.selfcal is None and tr.sampler.with_poses is False
+    ref = Trainer(scene, tiny(), tmp_path / "b")
+    # the step as it was: sample, render the sampler's rays, the event loss, Adam
+    for _ in range(2):
+        rng = torch.get_rng_state()
+        lr = ref.lr_at(ref.step_count)
+        for g in ref.optimizer.param_groups:
+            g["lr"] = lr * g.get("lr_scale", 1.0)
+        ref.field.train()
+        ref.field.update(ref.step_count)
+        b = ref.sampler.sample()
+        assert b.dirs is None and b.pose_idx is None and b.parts is None
+        out = ref.field.render(
+            b.rays_o, b.rays_d, near=scene.config.near, background=ref.background, train=True
+        )
+        c = ref.cfg
+        loss, _ = total_loss(
+            out,
+            b.target,
+            b.channel,
+            gamma=c.gamma,
+            eps=c.log_eps,
+            distortion_weight=c.distortion_weight,
+        )
+        ref.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        ref.optimizer.step()
+        ref.step_count += 1
+        torch.set_rng_state(rng)  # the same draws (vanilla's jitter) for the trainer's step
+        stats = tr.step()
+        assert stats["loss"] == float(loss.detach())
+        a, r = field_state(tr), field_state(ref)
+        assert all(torch.equal(a[k], r[k]) for k in a)
+        assert not any(k.startswith(("pose_", "threshold_")) for k in stats)
+
+
+def test_both_options_recorded_checkpointed_and_resumed_exactly(scene, tmp_path):
+    cfg = dict(
+        refine_poses=True,
+        estimate_threshold=True,
+        threshold_per_pixel=True,
+        perturb=PerturbConfig(pose_error_deg=1.0),
+    )
+    whole = Trainer(scene, tiny(**cfg), tmp_path / "whole")
+    whole.run(progress=False)
+    part = Trainer(scene, tiny(**cfg), tmp_path / "part")
+    for _ in range(2):
+        part.step()
+    part.save_checkpoint()
+    del part
+    resumed = Trainer(scene, tiny(**cfg), tmp_path / "part", resume=True)
+    resumed.run(progress=False)
+    assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
+    assert torch.equal(whole.selfcal.thresholds.pixel, resumed.selfcal.thresholds.pixel)
+    assert whole.selfcal.poses.delta.abs().max() > 0  # it did learn something
+    a, r = field_state(whole), field_state(resumed)
+    assert all(torch.equal(a[k], r[k]) for k in a)
+
+    conf = json.loads((tmp_path / "whole" / "config.json").read_text())
+    assert conf["train"]["refine_poses"] and conf["train"]["estimate_threshold"]
+    assert conf["built"]["pose_refinement"] and conf["built"]["threshold_estimation"]
+    sc = conf["self_calibration"]
+    assert sc["thresholds"]["start"] == {"pos": 0.25, "neg": 0.25}
+    est = sc["thresholds"]["estimate"]
+    assert est["pos"] == pytest.approx(whole.selfcal.thresholds.thresholds()[0].item())
+    assert sc["poses"]["rows"] == scene.config.n_views
+    # the study's truth is known: the error stats start near the perturbation
+    assert sc["stats"]["pose_error_deg"] == pytest.approx(1.0, abs=0.2)
+    last = json.loads((tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()[-1])
+    for key in ("threshold_pos", "threshold_neg", "pose_correction_deg", "pose_error_deg"):
+        assert math.isfinite(last[key]), key
+    progress = json.loads((tmp_path / "whole" / "progress.json").read_text())
+    assert "threshold_ratio" in progress["self_calibration"]
+
+
+def test_cli_flags(tmp_path):
+    import argparse
+
+    from fastenerf.commands import train as cmd
+
+    p = argparse.ArgumentParser()
+    cmd.add_arguments(p)
+    off = cmd.build_config(p.parse_args(["s", "--out", str(tmp_path / "r")]))
+    assert not off.refine_poses and not off.estimate_threshold
+    on = cmd.build_config(
+        p.parse_args(["s", "--out", str(tmp_path / "r"), "--refine-poses", "--estimate-threshold"])
+    )
+    assert on.refine_poses and on.estimate_threshold
+    with pytest.raises(InputError, match="refine_gauge"):
+        TrainConfig(refine_gauge="median").validate()
+    with pytest.raises(InputError, match="refine_lr"):
+        TrainConfig(refine_lr=0.0).validate()
+
+
+def test_synth_biased_thresholds_and_mismatch(tmp_path):
+    """The threshold study's scenes: separate thresholds and per-pixel mismatch, recorded."""
+    from fastenerf.cli import main
+    from fastenerf.config import SceneConfig as SC
+
+    out = tmp_path / "s"
+    argv = ["synth", "--scene", "blocks", "--out", str(out), "--size", "32x24", "--frames", "12"]
+    argv += ["--threshold", "0.3", "--neg-threshold", "0.2", "--mismatch", "0.03"]
+    assert main(argv) == 0
+    sc = SC.load(out)
+    assert (sc.pos_threshold, sc.neg_threshold) == (0.3, 0.2)
+    bad = ["synth", "--scene", "blocks", "--out", str(tmp_path / "t"), "--neg-threshold", "-1"]
+    assert main(bad) == 2
