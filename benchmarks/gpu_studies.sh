@@ -49,14 +49,16 @@ link_package "$ROOT"
 cd "$ROOT"
 export PYTHONPATH=$ROOT
 jobs_list=()
-for s in $SCENES; do
-    for st in pose-error noise ablation; do jobs_list+=("$s:$st"); done
+for st in pose-error noise ablation pose-refine; do
+    for s in $SCENES; do jobs_list+=("$s:$st"); done
 done
-run_study() {  # SCENE:STUDY
-    local s=${1%%:*} st=${1##*:}
-    $PY -c "import sys; from fastenerf.cli import main; sys.exit(main())" bench study "$st" \
-        "$DATA/$s" --out "$OUT/study_${s}_${st}" --steps "$STUDY_STEPS" --device "$DEVICE" \
-        --commit "$COMMIT" --quiet > "$OUT/study_${s}_${st}.log" 2>&1
+run_study() {  # SCENE:STUDY; pose-refine is the pose study at 0, 1, 2 deg with --refine-poses
+    local s=${1%%:*} st=${1##*:} extra=()
+    if [ "$st" = pose-refine ]; then extra=(--levels 0 1 2 --set refine_poses=true); fi
+    $PY -c "import sys; from fastenerf.cli import main; sys.exit(main())" bench study \
+        "${st/pose-refine/pose-error}" "$DATA/$s" --out "$OUT/study_${s}_${st}" \
+        --steps "$STUDY_STEPS" --device "$DEVICE" --commit "$COMMIT" --quiet "${extra[@]}" \
+        > "$OUT/study_${s}_${st}.log" 2>&1
     log "study $s $st done (rc $?)"
 }
 for j in "${jobs_list[@]}"; do
