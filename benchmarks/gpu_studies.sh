@@ -35,7 +35,7 @@ log "start: $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | he
 
 evt60() {  # TREE LABEL: a 60 s ngp error-vs-time curve on blocks with that tree's code
     link_package "$1"
-    (cd "$1" && PYTHONPATH="$1" $PY -m benchmarks.error_vs_time --scenes "$DATA/blocks" \
+    (cd "$1" && PYTHONPATH="$1:${PYTHONPATH:-}" $PY -m benchmarks.error_vs_time --scenes "$DATA/blocks" \
         --backends ngp --preset fast --budget-s "ngp=$EVT_S" --device "$DEVICE" --eval-views 10 \
         --out "$OUT/evt_$2" --commit "$2" --quiet) > "$OUT/evt_$2.log" 2>&1
     log "evt $2 done (rc $?)"
@@ -47,7 +47,7 @@ fi
 
 link_package "$ROOT"
 cd "$ROOT"
-export PYTHONPATH=$ROOT
+export PYTHONPATH=$ROOT:${PYTHONPATH:-}
 jobs_list=()
 for st in pose-error noise ablation pose-refine; do
     for s in $SCENES; do jobs_list+=("$s:$st"); done
