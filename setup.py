@@ -42,6 +42,8 @@ setup(
         "h5py>=3.8",
         "aedat>=2.0",
         "matplotlib>=3.7",
+        "xatlas>=0.0.9",
+        "pillow>=9.0",
     ],
     extras_require={"dev": ["pytest>=7", "ruff>=0.5"]},
     entry_points={"console_scripts": ["fastenerf=fastenerf.cli:main"]},
