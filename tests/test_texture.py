@@ -176,31 +176,6 @@ def test_textured_mesh_renders_like_its_colours(ball):
     assert a[24, 26, 0] < a[24, 38, 0] - 0.05 and a[18, 32, 1] > a[30, 32, 1] + 0.05
 
 
-@pytest.fixture
-def untrained_run(tmp_path, scene_config, random_stream):
-    """A (briefly initialised, untrained) vanilla run of a clipped real scene at 16x12, and a
-    density level inside its field's range so that a surface exists (as test_mesh does)."""
-    from fastenerf.clip import clip_aabb
-    from fastenerf.config import CylinderConfig, TrainConfig
-    from fastenerf.data.formats.native import load_scene, save_scene
-    from fastenerf.mesh import density_grid
-    from fastenerf.train import Trainer, load_run
-
-    cfg = scene_config(width=16, height=12, cylinder=CylinderConfig(), kind="real")
-    save_scene(tmp_path / "scene", cfg, random_stream(width=16, height=12))
-    trainer = Trainer(
-        load_scene(tmp_path / "scene"),
-        TrainConfig(backend="vanilla", steps=0, device="cpu"),
-        tmp_path / "run",
-    )
-    trainer.save_checkpoint(finished=True)
-    field, _, _ = load_run(tmp_path / "run", device="cpu")
-    vol, _ = density_grid(
-        field.density, clip_aabb(cfg.aabb, cfg.cylinder), 16, cylinder=cfg.cylinder, progress=False
-    )
-    return tmp_path / "run", float(np.quantile(vol[vol > 0], 0.5))
-
-
 def test_mesh_cli_texture(untrained_run, tmp_path):
     import trimesh
 
