@@ -95,9 +95,11 @@ def vertex_colors(
     chunk: int = 1 << 16,
     device=None,
     progress: bool = True,
+    desc: str = "vertex colours",
 ) -> np.ndarray:
     """Display-space colour (V, 3) in [0, 1] per vertex: color_fn(x, d) averaged in linear
-    intensity over `n_dirs` rays d that hit the vertex from outside (within 60° of −normal)."""
+    intensity over `n_dirs` rays d that hit the vertex from outside (within 60° of −normal).
+    `desc` labels the progress bar."""
     from tqdm import tqdm
 
     local = hemisphere_dirs(n_dirs)  # around +z; rotate +z onto -normal per vertex
@@ -110,7 +112,7 @@ def vertex_colors(
     step = max(1, chunk // n_dirs)
     for s in tqdm(
         range(0, len(vertices), step),
-        desc="vertex colours",
+        desc=desc,
         unit="chunk",
         disable=not progress,
         leave=False,

@@ -166,11 +166,11 @@ def bake_texture(
     lam = bary[covered].astype(np.float64)[..., None]  # (T, 3, 1)
     x = (verts[f] * lam).sum(1)
     n = (vnrm[f] * lam).sum(1)
-    flat = np.linalg.norm(n, axis=1) < 1e-6  # opposite vertex normals cancel: the face's
+    flat = np.linalg.norm(n, axis=1) < 1e-6  # vertex normals that cancel: the face's instead
     if flat.any():
         fn = np.cross(verts[f[flat, 1]] - verts[f[flat, 0]], verts[f[flat, 2]] - verts[f[flat, 0]])
         n[flat] = fn
-    col = vertex_colors(color_fn, x, n, n_dirs, chunk, device, progress)
+    col = vertex_colors(color_fn, x, n, n_dirs, chunk, device, progress, desc="texels")
     img = np.zeros((h, w, 3), np.float32)
     img[covered] = col
     img = dilate(img, covered, dilation)
