@@ -44,6 +44,7 @@ setup(
         "matplotlib>=3.7",
         "xatlas>=0.0.9",
         "pillow>=9.0",
+        "fast-simplification>=0.1",
     ],
     extras_require={"dev": ["pytest>=7", "ruff>=0.5"]},
     entry_points={"console_scripts": ["fastenerf=fastenerf.cli:main"]},

@@ -1,10 +1,11 @@
 """Textured mesh against the field it was baked from: PSNR of renders, texture size, bake time.
 
     python -m benchmarks.mesh_texture RUN_DIR --out OUT [--resolution 256] [--threshold 10] \
-        [--texture-size 1024] [--dirs 8] [--views 10] [--scale 1] [--device auto]
+        [--texture-size 1024] [--dirs 8] [--faces N] [--views 10] [--scale 1] [--device auto]
 
 The run's field is meshed as `fastenerf mesh` does (marching cubes at `--threshold`), given
-vertex colours, then UV-atlased and baked into a texture (`fastenerf mesh --texture`). From the
+vertex colours, then (simplified to `--faces` triangles, if given) UV-atlased and baked into a
+texture (`fastenerf mesh --texture [--faces N]`). From the
 scene's test poses (every k-th, at most `--views`; an orbit of the scene where the run's scene
 folder has no test views or is gone) the field is rendered as `fastenerf render` does, and the
 textured and the vertex-coloured mesh are drawn unlit (each surface in its baked colour) by
@@ -40,6 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", type=float, default=10.0, help="surface density (10)")
     p.add_argument("--texture-size", type=int, default=1024, help="atlas side, texels (1024)")
     p.add_argument("--dirs", type=int, default=8, help="view directions per texel (8)")
+    p.add_argument("--faces", type=int, default=None, help="simplify before the atlas (none)")
     p.add_argument("--views", type=int, default=10, help="test views compared, at most (10)")
     p.add_argument("--scale", type=float, default=1.0, help="render size / sensor size (1)")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
@@ -77,7 +79,7 @@ def field_renders(field, c2w, intr, sc, bg, chunk: int) -> tuple[np.ndarray, np.
 
 def run(args: argparse.Namespace) -> int:
     from fastenerf.data.rig import Intrinsics
-    from fastenerf.mesh import field_mesh, render_views
+    from fastenerf.mesh import decimate, field_mesh, render_views
     from fastenerf.texture import bake_texture, export_textured
     from fastenerf.train import load_run, scene_background
 
@@ -96,7 +98,10 @@ def run(args: argparse.Namespace) -> int:
     )  # fmt: skip
     sync(device)
     t_mesh = time.perf_counter() - t0
-    textured, st = bake_texture(field.color, mesh, args.texture_size, args.dirs, device=device)
+    t0 = time.perf_counter()
+    simple = decimate(mesh, args.faces) if args.faces else mesh
+    t_simplify = time.perf_counter() - t0
+    textured, st = bake_texture(field.color, simple, args.texture_size, args.dirs, device=device)
     sync(device)
     glb = export_textured(textured, out / "mesh.glb")[0]
 
@@ -128,6 +133,8 @@ def run(args: argparse.Namespace) -> int:
             "atlas_s": st["atlas_s"],
             "bake_s": st["bake_s"],
             "atlas_vertices": len(textured.vertices),
+            "faces": len(textured.faces),
+            "simplify_s": t_simplify,
             "glb_bytes": glb.stat().st_size,
         },
         "psnr": {
@@ -161,8 +168,9 @@ def markdown(res: dict) -> str:
             "| colours | PSNR (dB) | PSNR object (dB) | size | time (s) |",
             "|---|---|---|---|---|",
             f"| texture | {p['textured']:.2f} | {p['textured_object']:.2f} | {w}x{h} texels, "
-            f"{t['coverage']:.0%} covered, GLB {t['glb_bytes'] / 2**20:.1f} MiB | "
-            f"atlas {t['atlas_s']:.1f} + bake {t['bake_s']:.1f} |",
+            f"{t['coverage']:.0%} covered, {t['faces']:,} faces, GLB "
+            f"{t['glb_bytes'] / 2**20:.1f} MiB | simplify {t['simplify_s']:.1f} + atlas "
+            f"{t['atlas_s']:.1f} + bake {t['bake_s']:.1f} |",
             f"| vertex | {p['vertex_colours']:.2f} | {p['vertex_colours_object']:.2f} | "
             f"{m['vertices']:,} vertices, {m['faces']:,} faces | mesh {m['seconds']:.1f} |",
             "",

@@ -191,7 +191,16 @@ def extract_mesh(
     if largest_only and len(mesh.faces):
         parts = mesh.split(only_watertight=False)
         mesh = max(parts, key=lambda m: len(m.faces))
-    if color_fn is not None and len(mesh.vertices):
+    if color_fn is not None:
+        color_mesh(mesh, color_fn, n_dirs, device=device, progress=progress)
+    return mesh
+
+
+def color_mesh(mesh, color_fn: ColorFn, n_dirs: int = 8, device=None, progress: bool = True):
+    """Give `mesh` (in place, and returned) RGBA vertex colours from `vertex_colors`."""
+    import trimesh
+
+    if len(mesh.vertices):
         col = vertex_colors(
             color_fn,
             np.asarray(mesh.vertices),
@@ -203,6 +212,23 @@ def extract_mesh(
         rgba = np.concatenate([np.round(col * 255), np.full((len(col), 1), 255)], 1)
         mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=rgba.astype(np.uint8))
     return mesh
+
+
+def decimate(mesh, faces: int):
+    """`mesh` simplified towards `faces` triangles (quadric error metric, through
+    fast-simplification; many small closed pieces cannot all reach it); the mesh itself when
+    it has no more. Colours are not kept: colour the result."""
+    import trimesh
+
+    if faces < 4:
+        raise InputError(f"cannot decimate to {faces} faces (at least 4)")
+    if len(mesh.faces) <= faces:
+        return mesh
+    out = mesh.simplify_quadric_decimation(face_count=int(faces))
+    out = trimesh.Trimesh(out.vertices, out.faces, process=True)
+    if len(out.faces) and out.volume < 0:
+        out.invert()
+    return out
 
 
 def field_mesh(

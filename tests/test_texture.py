@@ -116,6 +116,26 @@ def test_texel_colour_is_seen_from_outside(ball):
     assert covered.mean() > 0.3 and (img[covered] == 255).all()
 
 
+def test_simplified_mesh_keeps_its_shape_and_the_texture_its_colour(ball):
+    import trimesh
+
+    from fastenerf.mesh import decimate
+
+    assert decimate(ball, len(ball.faces)) is ball
+    coarse = decimate(ball, 400)
+    assert 300 <= len(coarse.faces) <= 400 < len(ball.faces) / 4
+    r = np.linalg.norm(coarse.vertices, axis=1)
+    assert np.abs(r - 0.5).max() < 0.03 and coarse.volume > 0
+    assert abs(coarse.volume / ball.volume - 1) < 0.05
+    # The colour ramp survives on the coarse geometry: the texture holds it, not the vertices.
+    textured, _ = bake_texture(position_colour, coarse, size=128, n_dirs=1, progress=False)
+    p, fi = trimesh.sample.sample_surface(textured, 5000, seed=2)
+    err = np.abs(sample_texture(textured, p, fi) - (p + 1) / 2).max(1)
+    assert np.percentile(err, 99) < 0.015
+    with pytest.raises(InputError, match="at least 4"):
+        decimate(ball, 2)
+
+
 def test_textured_glb_and_obj_load_with_uvs_and_image(ball, tmp_path):
     import trimesh
 
@@ -199,13 +219,18 @@ def test_mesh_cli_texture(untrained_run, tmp_path):
     # Without --texture: vertex colours as before.
     assert cli(["mesh", str(run), "--out", str(tmp_path / "v.ply"), *common]) == 0
     assert trimesh.load(tmp_path / "v.ply").visual.kind == "vertex"
+    assert cli(["mesh", str(run), "--out", str(tmp_path / "s.ply"), "--faces", "64", *common]) == 0
+    small, full = trimesh.load(tmp_path / "s.ply"), trimesh.load(tmp_path / "v.ply")
+    # (a fog of small pieces cannot all shrink to the target: fewer faces, not exactly 64)
+    assert len(small.faces) < len(full.faces) / 2 and small.visual.kind == "vertex"
     # Bad requests: one line, exit 2, nothing written.
     assert cli(["mesh", str(run), "--out", str(tmp_path / "x.ply"), "--texture"]) == 2
     bad = ["--out", str(tmp_path / "y.glb"), "--texture", "--texture-size", "4"]
     assert cli(["mesh", str(run), *bad]) == 2
     clash = ["--out", str(tmp_path / "z.obj"), "--texture", "--png", str(tmp_path / "z.png")]
     assert cli(["mesh", str(run), *clash]) == 2
-    assert not any((tmp_path / n).exists() for n in ("x.ply", "y.glb", "z.obj"))
+    assert cli(["mesh", str(run), "--out", str(tmp_path / "w.ply"), "--faces", "3"]) == 2
+    assert not any((tmp_path / n).exists() for n in ("x.ply", "y.glb", "z.obj", "w.ply"))
 
 
 def test_mesh_texture_benchmark(untrained_run, tmp_path):

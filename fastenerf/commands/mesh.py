@@ -52,6 +52,16 @@ def add_arguments(p) -> None:
         help="atlas side in texels (xatlas packs about this size; default 1024)",
     )
     p.add_argument(
+        "--faces",
+        type=int,
+        default=None,
+        metavar="N",
+        help="simplify to about N triangles (quadric error metric; small closed pieces stop "
+        "short of it) before colouring; a "
+        "textured mesh keeps its colour detail in the texture, and the atlas is made faster "
+        "(default: no simplification)",
+    )
+    p.add_argument(
         "--largest",
         action="store_true",
         help="keep only the largest connected piece (drops floaters)",
@@ -85,7 +95,7 @@ def _check_outputs(args) -> list:
 
 def run(args) -> int:
     from ..errors import InputError
-    from ..mesh import export_mesh, field_mesh, write_mesh_png
+    from ..mesh import color_mesh, decimate, export_mesh, field_mesh, write_mesh_png
     from ..train import load_run
 
     outs = _check_outputs(args)
@@ -93,13 +103,15 @@ def run(args) -> int:
         raise InputError("--resolution must be >= 2, --dirs and --chunk >= 1")
     if args.texture and args.texture_size < 16:
         raise InputError(f"--texture-size must be at least 16 texels, got {args.texture_size}")
+    if args.faces is not None and args.faces < 4:
+        raise InputError(f"--faces must be at least 4, got {args.faces}")
     field, scene, _ = load_run(args.run, device=args.device)
     cfg = getattr(scene, "config", scene)  # a loaded Scene or the SceneConfig saved in the run
     mesh = field_mesh(
         field,
         aabb=cfg.aabb,
         cylinder=cfg.cylinder,
-        colors=not args.texture,
+        colors=not (args.texture or args.faces),
         resolution=args.resolution,
         threshold=args.threshold,
         n_dirs=args.dirs,
@@ -110,11 +122,16 @@ def run(args) -> int:
         f"{len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces, "
         f"{'watertight' if mesh.is_watertight else 'open'}"
     )
+    device = next((p.device for p in field.parameters()), None)
+    if args.faces is not None and len(mesh.faces) > args.faces:
+        mesh = decimate(mesh, args.faces)
+        print(f"simplified to {len(mesh.vertices):,} vertices, {len(mesh.faces):,} faces")
+    if args.faces is not None and not args.texture:  # coloured after the simplification
+        color_mesh(mesh, field.color, args.dirs, device=device)
     written = []
     if args.texture:
         from ..texture import bake_texture, export_textured
 
-        device = next((p.device for p in field.parameters()), None)
         mesh, st = bake_texture(field.color, mesh, args.texture_size, args.dirs, device=device)
         w, h = st["texture"]
         print(
