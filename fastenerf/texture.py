@@ -23,9 +23,14 @@ import numpy as np
 from .errors import InputError
 from .mesh import ColorFn, vertex_colors
 
-# Texels of empty space that xatlas keeps between charts (so a dilated island cannot reach its
-# neighbour) and that the bake fills around each island.
-PADDING = 4
+# Texels of empty space that xatlas keeps around each chart: bilinear filtering at a chart's
+# border then reads no other chart. Each costs a ring of texels per chart, and noisy
+# marching-cubes meshes make thousands of small charts.
+PADDING = 2
+# Texels the bake fills around each island (nearest island texel's colour), so that filtering
+# and the first mipmap levels read the island's colour, not the empty atlas. Filling only
+# empty texels, it may meet the next chart's fill but never overwrites a chart.
+DILATION = 4
 
 
 def uv_atlas(
@@ -135,7 +140,7 @@ def bake_texture(
     mesh,
     size: int = 1024,
     n_dirs: int = 8,
-    dilation: int = PADDING,
+    dilation: int = DILATION,
     chunk: int = 1 << 16,
     device=None,
     progress: bool = True,

@@ -49,7 +49,8 @@ def add_arguments(p) -> None:
         type=int,
         default=1024,
         metavar="TEXELS",
-        help="atlas side in texels (xatlas packs about this size; default 1024)",
+        help="atlas side in texels (default 1024); xatlas packs about this size, larger where "
+        "a noisy mesh makes many small charts (--faces helps)",
     )
     p.add_argument(
         "--faces",
