@@ -95,9 +95,11 @@ def vertex_colors(
     chunk: int = 1 << 16,
     device=None,
     progress: bool = True,
+    desc: str = "vertex colours",
 ) -> np.ndarray:
     """Display-space colour (V, 3) in [0, 1] per vertex: color_fn(x, d) averaged in linear
-    intensity over `n_dirs` rays d that hit the vertex from outside (within 60° of −normal)."""
+    intensity over `n_dirs` rays d that hit the vertex from outside (within 60° of −normal).
+    `desc` labels the progress bar."""
     from .progress import progress_bar
 
     local = hemisphere_dirs(n_dirs)  # around +z; rotate +z onto -normal per vertex
@@ -109,7 +111,7 @@ def vertex_colors(
     acc = np.zeros((len(vertices), 3), np.float64)
     step = max(1, chunk // n_dirs)
     for s in progress_bar(
-        range(0, len(vertices), step), desc="vertex colours", unit="chunk", enabled=progress
+        range(0, len(vertices), step), desc=desc, unit="chunk", enabled=progress
     ):
         sl = slice(s, s + step)
         d = (
@@ -117,7 +119,7 @@ def vertex_colors(
             + local[None, :, 1:2] * t2[sl, None]
             + local[None, :, 2:] * nrm[sl, None]
         )  # (v, K, 3) unit
-        x = np.broadcast_to(vertices[sl, None], d.shape)
+        x = np.repeat(vertices[sl, None], d.shape[1], axis=1)
         c = color_fn(
             torch.as_tensor(x.reshape(-1, 3), dtype=torch.float32, device=device),
             torch.as_tensor(d.reshape(-1, 3), dtype=torch.float32, device=device),
@@ -185,7 +187,16 @@ def extract_mesh(
     if largest_only and len(mesh.faces):
         parts = mesh.split(only_watertight=False)
         mesh = max(parts, key=lambda m: len(m.faces))
-    if color_fn is not None and len(mesh.vertices):
+    if color_fn is not None:
+        color_mesh(mesh, color_fn, n_dirs, device=device, progress=progress)
+    return mesh
+
+
+def color_mesh(mesh, color_fn: ColorFn, n_dirs: int = 8, device=None, progress: bool = True):
+    """Give `mesh` (in place, and returned) RGBA vertex colours from `vertex_colors`."""
+    import trimesh
+
+    if len(mesh.vertices):
         col = vertex_colors(
             color_fn,
             np.asarray(mesh.vertices),
@@ -199,10 +210,32 @@ def extract_mesh(
     return mesh
 
 
+def decimate(mesh, faces: int):
+    """`mesh` simplified towards `faces` triangles (quadric error metric, through
+    fast-simplification; many small closed pieces cannot all reach it); the mesh itself when
+    it has no more. Colours are not kept: colour the result."""
+    import trimesh
+
+    if faces < 4:
+        raise InputError(f"cannot decimate to {faces} faces (at least 4)")
+    if len(mesh.faces) <= faces:
+        return mesh
+    out = mesh.simplify_quadric_decimation(face_count=int(faces))
+    out = trimesh.Trimesh(out.vertices, out.faces, process=True)
+    if len(out.faces) and out.volume < 0:
+        out.invert()
+    return out
+
+
 def field_mesh(
-    field, aabb: Sequence[float] | None = None, cylinder: Cylinder | None = None, **kwargs
+    field,
+    aabb: Sequence[float] | None = None,
+    cylinder: Cylinder | None = None,
+    colors: bool = True,
+    **kwargs,
 ):
-    """`extract_mesh` on a `fastenerf.fields.base.Field` (its density and color, its device).
+    """`extract_mesh` on a `fastenerf.fields.base.Field` (its density and color, its device);
+    `colors=False` leaves out the vertex colours (a texture is baked instead).
 
     A field with an occupancy grid (ngp) is meshed as it renders: σ = 0 in cells the grid holds
     empty. Otherwise cells no training camera saw would keep the field's initial fog, which
@@ -219,7 +252,8 @@ def field_mesh(
         def density(x: torch.Tensor) -> torch.Tensor:
             return torch.where(grid.occupied(x).to(x.device), field.density(x), 0.0)
 
-    return extract_mesh(density, field.color, aabb, cylinder=cylinder, **kwargs)
+    color = field.color if colors else None
+    return extract_mesh(density, color, aabb, cylinder=cylinder, **kwargs)
 
 
 def export_mesh(mesh, path: str | Path) -> Path:
@@ -282,6 +316,22 @@ def render_mesh(
         return _render_matplotlib(mesh, intr, c2w, background)
 
 
+def render_views(mesh, intr, c2w: np.ndarray, background=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Unlit renders (N, H, W, 3) float32 display space of `mesh`'s own colours (texture or
+    vertex colours, as baked from the field) from OpenCV camera-to-world poses c2w (N, 4, 4)
+    with intrinsics `intr` (`fastenerf.data.rig.Intrinsics`), over a display-space background.
+    Needs a headless EGL context (`FastenerfError` where none can be made)."""
+    from .data.synth.gl import GLRenderer
+    from .data.synth.scenes import Material, SceneObject, SynthScene
+
+    c2w = np.asarray(c2w, np.float64).reshape(-1, 4, 4)
+    dist = np.linalg.norm(c2w[:, :3, 3] - np.asarray(mesh.bounds).mean(0), axis=1).max()
+    near = 0.01 * max(float(dist), 1e-6)
+    scene = SynthScene("mesh", [SceneObject(mesh, Material())], background=tuple(background))
+    with GLRenderer(intr, scene, near=near, far=near * 1000, lit=False) as r:
+        return np.asarray(r.render(c2w), np.float32).clip(0, 1) ** (1.0 / GAMMA)
+
+
 def _render_matplotlib(mesh, intr, c2w, background) -> np.ndarray:
     import matplotlib
 
@@ -295,7 +345,8 @@ def _render_matplotlib(mesh, intr, c2w, background) -> np.ndarray:
     tri = np.asarray(mesh.faces)
     depth = v[tri, 2].mean(1)
     order = np.argsort(-depth)  # far to near
-    vc = np.asarray(mesh.visual.vertex_colors, np.float64)[:, :3] / 255.0
+    visual = mesh.visual.to_color() if mesh.visual.kind == "texture" else mesh.visual
+    vc = np.asarray(visual.vertex_colors, np.float64)[:, :3] / 255.0
     fn = np.asarray(mesh.face_normals) @ w2c[:3, :3].T
     to_light = np.array([-0.3, -0.6, -0.75]) / np.linalg.norm([-0.3, -0.6, -0.75])  # upper left
     shade = 0.35 + 0.65 * np.clip(fn @ to_light, 0, 1)

@@ -117,3 +117,39 @@ def aedat_skip_reason() -> str:
         f"real AEDAT4 recordings not found (looked in {looked}); set {AEDAT_ENV}=DIR to the "
         f"folder holding {AEDAT_PROBE} and the other recordings (shared/external-aedat)"
     )
+
+
+@pytest.fixture
+def make_untrained_run(tmp_path, scene_config, random_stream):
+    """make(name="run", **scene_overrides) -> (run folder, density level): a (briefly
+    initialised, untrained) vanilla run of a clipped real scene at 16x12, and a density level
+    inside its field's range so that a surface exists (as test_mesh does)."""
+    from fastenerf.clip import clip_aabb
+    from fastenerf.config import CylinderConfig, TrainConfig
+    from fastenerf.data.formats.native import load_scene, save_scene
+    from fastenerf.mesh import density_grid
+    from fastenerf.run import load_run
+    from fastenerf.train import Trainer
+
+    def make(name: str = "run", **overrides):
+        kw = dict(width=16, height=12, cylinder=CylinderConfig(), kind="real")
+        cfg = scene_config(**{**kw, **overrides})
+        save_scene(tmp_path / f"{name}_scene", cfg, random_stream(width=16, height=12))
+        trainer = Trainer(
+            load_scene(tmp_path / f"{name}_scene"),
+            TrainConfig(backend="vanilla", steps=0, device="cpu"),
+            tmp_path / name,
+        )
+        trainer.save_checkpoint(finished=True)
+        field, _, _ = load_run(tmp_path / name, device="cpu")
+        box = clip_aabb(cfg.aabb, cfg.cylinder)
+        vol, _ = density_grid(field.density, box, 16, cylinder=cfg.cylinder, progress=False)
+        return tmp_path / name, float(np.quantile(vol[vol > 0], 0.5))
+
+    return make
+
+
+@pytest.fixture
+def untrained_run(make_untrained_run):
+    """(run folder, density level) of `make_untrained_run()`."""
+    return make_untrained_run()

@@ -389,8 +389,12 @@ def test_native_to_eventnerf_round_trip(
     k = np.loadtxt(out / "train" / "intrinsics" / "r_00000.txt")
     np.testing.assert_allclose(k[4], [-0.25, 0.07, 0, 0])
     np.testing.assert_allclose(k[:3, :3], [[300, 0, 172.5], [0, 302, 129], [0, 0, 1]])
+    # the written poses: the same rotations, centres in the unit-sphere frame of the record
+    norm = json.loads((out / "fastenerf_scene.json").read_text())["normalisation"]
+    written = np.loadtxt(out / "train" / "pose" / "r_00011.txt")
+    np.testing.assert_allclose(written[:3, :3], c2w[11][:3, :3], atol=1e-15)
     np.testing.assert_allclose(
-        np.loadtxt(out / "train" / "pose" / "r_00011.txt"), c2w[11], atol=1e-15
+        written[:3, 3], norm["scale"] * (c2w[11][:3, 3] - norm["center"]), atol=1e-15
     )
     # and without our record: the folder alone gives the same events (shifted to start at 0)
     (out / "fastenerf_scene.json").unlink()
@@ -398,8 +402,68 @@ def test_native_to_eventnerf_round_trip(
     np.testing.assert_array_equal(bare.events.t, scene.events.t - t_start)
     assert bare.config.intrinsics == scene.config.intrinsics
     assert bare.config.kind == "real" and bare.test_c2w is None  # float t: real, no auto GT
-    named = load_eventnerf(out, test_split="test")
-    np.testing.assert_allclose(named.test_c2w, scene.test_c2w, atol=1e-12)
+    named = load_eventnerf(out, test_split="test")  # in the written (unit-sphere) frame
+    np.testing.assert_allclose(named.test_c2w[:, :3, :3], scene.test_c2w[:, :3, :3], atol=1e-12)
+    np.testing.assert_allclose(
+        named.test_c2w[:, :3, 3],
+        norm["scale"] * (scene.test_c2w[:, :3, 3] - norm["center"]),
+        atol=1e-12,
+    )
+
+
+@pytest.mark.parametrize("cylinder", [False, True])
+def test_export_puts_cameras_and_object_in_the_unit_sphere(
+    tmp_path, random_stream, scene_config, test_views, cylinder
+):
+    """Their trainer (NeRF++) refuses rays whose line passes outside the unit sphere: every
+    written camera centre, in every split, must lie inside it, and so must the object's box.
+    The record's similarity maps it back: poses, box and clip restored."""
+    from fastenerf.config import CylinderConfig
+
+    cyl = CylinderConfig(radius=0.25, y_min=-0.14, y_max=0.195) if cylinder else None
+    cfg = scene_config(aabb=[-0.4, -0.3, -0.2, 0.6, 0.5, 0.4], cylinder=cyl)
+    assert np.linalg.norm(Turntable(cfg.trajectory)(np.array([0]))[0, :3, 3]) > 2
+    tt, tc, rgb = test_views(cfg, 4)
+    ev = random_stream(n=20_000, width=346, height=260, t_max=1_000_000)
+    save_scene(tmp_path / "native", cfg, ev, tt, tc, rgb)
+    scene = load_scene(tmp_path / "native")
+    out = export_eventnerf(scene, tmp_path / "en", n_views=40)
+    centres = np.stack([np.loadtxt(p)[:3, 3] for p in out.glob("*/pose/*.txt")])
+    assert len(centres) == 40 + 2 * 4 and np.linalg.norm(centres, axis=1).max() < 1.0
+    meta = json.loads((out / "fastenerf_scene.json").read_text())
+    norm = meta["normalisation"]
+    box = np.asarray(norm["aabb"])
+    corners = np.stack(np.meshgrid(*zip(box[:3], box[3:], strict=True), indexing="ij"), -1).reshape(
+        -1, 3
+    )
+    assert np.linalg.norm(corners, axis=1).max() < 1.0
+    # the farthest of cameras and box sits at 0.9: the frame uses the sphere, not a corner of it
+    far = max(np.linalg.norm(centres, axis=1).max(), np.linalg.norm(corners, axis=1).max())
+    assert far == pytest.approx(0.9, abs=1e-9)
+    if cylinder:  # the clip in their frame: a cylinder about the y axis, scaled
+        s, c = norm["scale"], norm["center"]
+        assert c[0] == c[2] == 0.0
+        assert norm["cylinder"] == pytest.approx([0.25 * s, (-0.14 - c[1]) * s, (0.195 - c[1]) * s])
+    # their intersect_sphere: every pixel ray's closest point to the origin inside the sphere
+    K = np.loadtxt(out / "train" / "intrinsics" / "r_00000.txt")[:3, :3]
+    pose = np.loadtxt(out / "train" / "pose" / "r_00007.txt")
+    u, v = np.meshgrid(np.arange(0, 346, 7) + 0.5, np.arange(0, 260, 7) + 0.5)
+    d = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    d = d.reshape(-1, 3) @ pose[:3, :3].T
+    o = pose[:3, 3]
+    p = o - ((d @ o) / (d * d).sum(1))[:, None] * d
+    assert (p * p).sum(1).max() < 1.0
+    # the round trip gives back our world
+    back = load_eventnerf(out)
+    t, c2w = back.poses
+    np.testing.assert_allclose(c2w, scene.rig().pose(t), atol=1e-5)  # views at whole µs
+    np.testing.assert_allclose(back.test_c2w, scene.test_c2w, atol=1e-12)
+    assert back.config.aabb == cfg.aabb and back.config.cylinder == cfg.cylinder
+    assert back.config.near == cfg.near
+    # a damaged record is one line naming the file
+    meta["normalisation"]["scale"] = -1.0
+    (out / "fastenerf_scene.json").write_text(json.dumps(meta))
+    one_line_error(load_eventnerf, out, match="fastenerf_scene.json|positive scale")
 
 
 def test_export_converts_opencv_distortion(tmp_path, random_stream, scene_config, test_views):

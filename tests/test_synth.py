@@ -372,3 +372,7 @@ def test_synth_eventnerf_format(tmp_path, capsys):
     assert len(list((out / "test" / "rgb").glob("*.png"))) == 3
     sc = load_eventnerf(out)
     assert len(sc.events) > 1000 and (sc.config.width, sc.config.height) == (346, 260)
+    # their trainer needs every camera inside the unit sphere; the reader restores our world
+    centres = np.stack([np.loadtxt(p)[:3, 3] for p in out.glob("*/pose/*.txt")])
+    assert len(centres) == 30 + 2 * 3 and np.linalg.norm(centres, axis=1).max() < 1.0
+    assert np.linalg.norm(sc.poses[1][:, :3, 3], axis=1).min() > 2.0

@@ -118,7 +118,7 @@ def _outside_points(cyl: tuple[float, float, float], n: int = 3000) -> torch.Ten
 
 @pytest.mark.parametrize("backend", ["ngp", "vanilla"])
 def test_cylinder_flag_clips_an_eventnerf_scene(tmp_path, eventnerf_scene, backend, capsys):
-    from fastenerf.train import load_run
+    from fastenerf.run import load_run
 
     cyl = (0.3, -0.25, 0.2)
     run = tmp_path / backend

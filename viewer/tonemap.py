@@ -1,59 +1,28 @@
 """What the viewer shows of a rendered frame: exposure, depth / opacity colouring, 8-bit.
 
-Events fix a scene's colours only up to exposure (DESIGN §3): the log intensity the field
-learnt is right up to a gain and an offset. The exposure control therefore acts in log
-space: `L = log(c**2.2 + eps)`, `L' = gain * L + ev * ln 2`, back to display space, then a
-display gamma. All of it runs in torch on the frame's device, before the 8-bit upload.
+The exposure (a log-space gain, an offset in stops and a display gamma) is
+`fastenerf.tonemap`'s, the one `fastenerf render` applies: a frame looks the same in the
+viewer and in a rendered video. Everything runs in torch on the frame's device, before the
+8-bit upload.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import torch
 
-DISPLAY_GAMMA = 2.2  # linear intensity = c ** 2.2 (DESIGN §9)
+from fastenerf.tonemap import DISPLAY_GAMMA, Exposure, apply_exposure, invert_exposure
 
-
-@dataclass
-class Exposure:
-    """Log-space gain (contrast, > 0), offset in stops (`ev`), display gamma (> 0).
-
-    `eps` keeps log(0) finite; at the defaults the map is the identity up to float rounding.
-    """
-
-    gain: float = 1.0
-    ev: float = 0.0
-    gamma: float = 1.0
-    eps: float = 1e-4
-
-    @property
-    def is_identity(self) -> bool:
-        return self.gain == 1.0 and self.ev == 0.0 and self.gamma == 1.0
-
-
-def apply_exposure(rgb: torch.Tensor, e: Exposure) -> torch.Tensor:
-    """Display-space colours (..., 3) in [0, 1] -> exposed display colours in [0, 1].
-
-    Strictly increasing in each channel for gain, gamma > 0, until it clips at 0 or 1.
-    """
-    if e.is_identity:
-        return rgb.clamp(0.0, 1.0)
-    L = torch.log(rgb.clamp_min(0.0) ** DISPLAY_GAMMA + e.eps)
-    lin = (torch.exp(e.gain * L + e.ev * math.log(2.0)) - e.eps).clamp_min(0.0)
-    out = lin ** (1.0 / DISPLAY_GAMMA)
-    if e.gamma != 1.0:
-        out = out ** (1.0 / e.gamma)
-    return out.clamp(0.0, 1.0)
-
-
-def invert_exposure(out: torch.Tensor, e: Exposure) -> torch.Tensor:
-    """Inverse of `apply_exposure` on its unclipped range: exposed colours -> the field's."""
-    lin = out.clamp_min(0.0) ** (e.gamma * DISPLAY_GAMMA)
-    L = (torch.log(lin + e.eps) - e.ev * math.log(2.0)) / e.gain
-    return (torch.exp(L) - e.eps).clamp_min(0.0) ** (1.0 / DISPLAY_GAMMA)
-
+__all__ = [
+    "DISPLAY_GAMMA",
+    "Exposure",
+    "apply_exposure",
+    "invert_exposure",
+    "colormap_lut",
+    "depth_range",
+    "depth_to_rgb",
+    "gray_to_rgb",
+    "to_uint8",
+]
 
 _LUTS: dict[tuple[str, str], torch.Tensor] = {}
 

@@ -5,8 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ..tonemap import Exposure
 
 HELP = "render a trained run along an orbit or a saved camera path: PNGs and a video"
 
@@ -34,6 +38,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="resolution as a fraction of the sensor size (default 1)",
     )
     p.add_argument("--fps", type=float, default=24.0, help="video frame rate (default 24)")
+    e = p.add_argument_group(
+        "exposure",
+        "events fix colours only up to exposure: the viewer's controls, applied to the PNGs "
+        "and the video (log intensity L = log(c^2.2 + 1e-4) -> gain·L + ev·ln 2, then gamma)",
+    )
+    e.add_argument("--ev", type=float, default=0.0, help="exposure offset in stops (default 0)")
+    e.add_argument(
+        "--gain", type=float, default=1.0, help="log-space gain, i.e. contrast (default 1)"
+    )
+    e.add_argument("--gamma", type=float, default=1.0, help="display gamma (default 1)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
         "--force", action="store_true", help="write into --out even if it is not a render folder"
@@ -131,10 +145,13 @@ def render_path(
     scale: float = 1.0,
     fps: float = 24.0,
     progress: bool = True,
+    exposure: Exposure | None = None,
 ) -> dict:
     """Render a run along c2w (N, 4, 4), or an `orbit`-frame orbit when c2w is None.
 
-    Writes out/rgb/NNNN.png, out/depth/NNNN.png and out/video.mp4 (or .gif).
+    Writes out/rgb/NNNN.png, out/depth/NNNN.png and out/video.mp4 (or .gif); the colour
+    frames through `exposure` (`fastenerf.tonemap`, as the viewer shows them; None: as
+    rendered).
     """
     from ..data.formats.native import Scene
     from ..data.rig import Intrinsics
@@ -142,6 +159,7 @@ def render_path(
     from ..progress import progress_bar
     from ..render import render_image
     from ..run import load_run, scene_background
+    from ..tonemap import Exposure, apply_exposure
 
     field, scene, cfg = load_run(run_dir)
     sc, root = (scene.config, scene.root) if isinstance(scene, Scene) else (scene, None)
@@ -155,7 +173,7 @@ def render_path(
     frames = []
     for i, pose in enumerate(progress_bar(c2w, desc="render", unit="frame", enabled=progress)):
         img = render_image(field, pose, intr, near=sc.near, background=bg, chunk=cfg.chunk)
-        rgb = img["rgb"].clamp(0, 1).cpu().numpy()
+        rgb = apply_exposure(img["rgb"], exposure or Exposure()).cpu().numpy()
         write_image(out / "rgb" / f"{i:04d}.png", rgb)
         write_image(
             out / "depth" / f"{i:04d}.png",
@@ -174,6 +192,7 @@ def render_path(
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
+    from ..tonemap import Exposure
 
     if args.scale <= 0:
         raise InputError("--scale must be positive")
@@ -184,6 +203,7 @@ def run(args: argparse.Namespace) -> int:
     from .eval import check_render_memory
 
     claim_output(args.out, RENDER, force=args.force)
+    exposure = Exposure(gain=args.gain, ev=args.ev, gamma=args.gamma).validated("render")
     c2w = read_path(args.path) if args.path else None
     check_render_memory(args.run_dir, args.scale, n if c2w is None else len(c2w), "render")
     res = render_path(
@@ -194,6 +214,7 @@ def run(args: argparse.Namespace) -> int:
         scale=args.scale,
         fps=args.fps,
         progress=not args.no_progress,
+        exposure=exposure,
     )
     print(f"rendered {res['frames']} frames at {res['size'][0]}x{res['size'][1]}")
     print(f"wrote {res['rgb']}/, {res['depth']}/ and {res['video']}")

@@ -96,6 +96,7 @@ def run(args) -> int:
     if args.pose and args.view_index is not None:
         raise InputError("give --pose or --view-index, not both")
     check_view_outputs(args)
+    exposure = Exposure(ev=args.ev).validated("--ev")
     if args.train:
         src = ViewSource.from_training(
             args.train,
@@ -108,7 +109,7 @@ def run(args) -> int:
     else:
         src = ViewSource.from_run(args.run)
     settings = ViewSettings(
-        mode=args.mode, exposure=Exposure(ev=args.ev), near=src.near, background=src.background
+        mode=args.mode, exposure=exposure, near=src.near, background=src.background
     )
     if args.snapshot:
         return _snapshot(args, src, settings)

@@ -10,12 +10,22 @@ SCENE/<split>/                 split: train, validation, test
   rgb/r_NNNNN.png              one per view: ground truth or a placeholder (their loader
                                enumerates the views by these files; real scenes hold placeholders)
 SCENE/fastenerf_scene.json     only in folders written by `export_eventnerf`: our SceneConfig
+                               and the similarity that maps our world to the written poses
 ```
 Sensor 346x260 (their loader hard-codes it). Views are files sorted by name, as theirs are,
 matched by file stem across pose/, intrinsics/ and rgb/ (a missing or extra file is named in
 the error). Their view times come from the view's place in the listing; we take it from the
 number ending the stem, so a gap in the numbering (a view deleted) keeps the other views at
 their times, with a warning naming the missing views, instead of respacing them.
+
+Their trainer (NeRF++'s sphere parametrisation) needs every camera, and the object, inside the
+unit sphere. `export_eventnerf` therefore writes poses in a normalised frame
+x_written = scale · (x_world − center): center the scene box's centre (on the turntable axis
+x = z = 0 where the scene has a clip cylinder, so that the cylinder stays one about y), scale
+such that the farthest camera centre or box corner lies at radius 0.9. The record keeps
+scale and center (and the box and cylinder in the written frame, for their configs), and
+`load_eventnerf` maps the poses back, so a round trip gives back our world; a folder without
+the record is read in its own frame.
 
 Time, as their `data_loader_split.py` uses it: with M views and τ_max = max(t), view i sits at
 τ_i = i/(M-1)·τ_max (we count i by the view's number from the first; see above), and the
@@ -96,6 +106,7 @@ def load_eventnerf(
         )
     meta = _read_meta(root)
     views = _read_views(root / split, require_events=True)
+    views["c2w"] = _from_written(views["c2w"], meta, root)
     n = len(views["c2w"])
     if n < 2:
         raise InputError(f"{root / split / 'pose'}: needs at least 2 views, found {n}")
@@ -187,6 +198,8 @@ def export_eventnerf(
     else:
         idx = np.arange(0, n, 10) if n >= 30 else np.linspace(0, n - 1, 3).astype(int)
         test_c2w, test_rgb, test_t = c2w[idx], None, np.round(t_views[idx]).astype(np.int64)
+    norm = unit_sphere_normalisation(cfg, np.concatenate([c2w, test_c2w]))
+    c2w, test_c2w = _to_written(c2w, norm), _to_written(test_c2w, norm)
     out_dir = Path(out_dir)
     placeholder = _placeholder_png(cfg.width, cfg.height)
     with atomic_dir(out_dir) as tmp:
@@ -213,6 +226,7 @@ def export_eventnerf(
                 "written_intrinsics": K.tolist(),
                 "distortion_fit_max_px": fit_px,
                 "test_t_us": None if test_t is None else np.asarray(test_t).tolist(),
+                "normalisation": norm,
             },
         )
     return out_dir
@@ -493,11 +507,68 @@ def _attach_test_views(
             frac = slot / max(int(slot[-1]), 1)
             test_t = np.round(cfg.t_start_us + frac * (cfg.t_end_us - cfg.t_start_us))
             test_t = test_t.astype(np.int64)
-        scene.test_t, scene.test_c2w, scene.test_rgb_paths = test_t, views["c2w"], views["rgb"]
+        scene.test_t, scene.test_rgb_paths = test_t, views["rgb"]
+        scene.test_c2w = _from_written(views["c2w"], meta, root)
         return
 
 
 # ---------------------------------------------------------------------------- writing
+
+
+UNIT_SPHERE_RADIUS = 0.9  # where the farthest camera or box corner lands: inside, with margin
+
+
+def unit_sphere_normalisation(cfg: SceneConfig, c2w: np.ndarray) -> dict:
+    """The similarity x_written = scale · (x_world − center) that puts every camera centre of
+    c2w (N, 4, 4) and every corner of the scene's box inside the unit sphere (at most
+    `UNIT_SPHERE_RADIUS`). Returns {"scale", "center" [3], "aabb" [6], "cylinder"} with
+    the box and the clip cylinder (r, y_min, y_max, or None) in the written frame."""
+    a = np.asarray(cfg.aabb, np.float64)
+    center = (a[:3] + a[3:]) / 2
+    if cfg.cylinder is not None:
+        center[[0, 2]] = 0.0  # the cylinder's axis (x = z = 0) stays the y axis
+    corners = np.stack(np.meshgrid(*zip(a[:3], a[3:], strict=True), indexing="ij"), -1)
+    reach = max(
+        float(np.linalg.norm(c2w[:, :3, 3] - center, axis=1).max()),
+        float(np.linalg.norm(corners.reshape(-1, 3) - center, axis=1).max()),
+    )
+    scale = UNIT_SPHERE_RADIUS / reach
+    cyl = cfg.cylinder
+    return {
+        "scale": scale,
+        "center": center.tolist(),
+        "aabb": (scale * (a - np.tile(center, 2))).tolist(),
+        "cylinder": None
+        if cyl is None
+        else [cyl.radius * scale, (cyl.y_min - center[1]) * scale, (cyl.y_max - center[1]) * scale],
+    }
+
+
+def _to_written(c2w: np.ndarray, norm: dict) -> np.ndarray:
+    out = np.array(c2w, dtype=np.float64)
+    out[:, :3, 3] = norm["scale"] * (out[:, :3, 3] - np.asarray(norm["center"]))
+    return out
+
+
+def _from_written(c2w: np.ndarray, meta: dict | None, root: Path) -> np.ndarray:
+    """Written poses (M, 4, 4) back to our world by the record's similarity (as they are where
+    the folder has no record, or one from before the normalisation)."""
+    norm = (meta or {}).get("normalisation")
+    if not norm:
+        return c2w
+    try:
+        scale, center = float(norm["scale"]), np.asarray(norm["center"], np.float64)
+    except (KeyError, TypeError, ValueError) as e:
+        raise InputError(f"{root / META_FILE}: bad 'normalisation' record ({e})") from None
+    if not (
+        np.isfinite(scale) and scale > 0 and center.shape == (3,) and np.isfinite(center).all()
+    ):
+        raise InputError(
+            f"{root / META_FILE}: 'normalisation' needs a positive scale and a 3-vector center"
+        )
+    out = np.array(c2w, dtype=np.float64)
+    out[:, :3, 3] = out[:, :3, 3] / scale + center
+    return out
 
 
 def _eventnerf_intrinsics(intr: Intrinsics) -> tuple[np.ndarray, float]:

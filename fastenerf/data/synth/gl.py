@@ -184,7 +184,9 @@ class GLRenderer:
     intrinsics: the sensor (k1/k2 ≠ 0 renders wider and resamples); scene: a SynthScene;
     samples: MSAA samples; near/far: clip distances in world units; batch: frames per
     read-back; supersample: s renders at s x the resolution and box-filters (s² x MSAA
-    samples per pixel, ~s² x the time).
+    samples per pixel, ~s² x the time); lit: False draws each surface in its own colour
+    (texture x vertex colour, no lights or highlights), for meshes whose colours were baked
+    from a radiance field and so already hold the scene's light.
     """
 
     def __init__(
@@ -196,6 +198,7 @@ class GLRenderer:
         far: float = 100.0,
         batch: int = 16,
         supersample: int = 1,
+        lit: bool = True,
     ):
         import moderngl
 
@@ -211,8 +214,8 @@ class GLRenderer:
         self.near, self.far, self.batch = near, far, max(1, batch)
         self.prog = self.ctx.program(vertex_shader=_VERT, fragment_shader=_FRAG)
         self.prog["u_light_dir"].write(LIGHT_DIRS.tobytes())
-        self.prog["u_light_col"].write(LIGHT_COLORS.tobytes())
-        self.prog["u_ambient"].value = AMBIENT
+        self.prog["u_light_col"].write((LIGHT_COLORS * lit).tobytes())
+        self.prog["u_ambient"].value = AMBIENT if lit else 1.0
         self.prog["u_tex"].value = 0
         self._frame_bytes = self.intr.width * self.intr.height * 3 * 4
         self._pbo = self.ctx.buffer(reserve=self._frame_bytes * self.batch)
