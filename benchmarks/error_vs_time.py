@@ -166,10 +166,8 @@ def _f(x, fmt: str = ".2f", none: str = "—") -> str:
 def markdown(result: dict) -> str:
     """The Markdown table for benchmarks/RESULTS.md."""
     machines = result["machines"]
-    cpu = result["cpu_numbers"]
-    proto = result["protocol"]
     lines = [f"### Error against training time — {' / '.join(machines)}", ""]
-    if cpu:
+    if result["cpu_numbers"]:
         lines += [
             f"**CPU numbers** (measured on {' / '.join(machines)}): reduced-size runs, "
             "not comparable with the GPU targets of DESIGN §8.",
@@ -186,7 +184,27 @@ def markdown(result: dict) -> str:
             "**Incomplete:** some runs have not spent their budget yet (continue with `--resume`).",
             "",
         ]
+    lines += [_md_protocol(result), ""]
+    lines += _md_backend_table(result["summary"])
+    lines += _md_comparison_table(result["summary"])
     lines += [
+        "",
+        "The vanilla backend's best is its best within its budget, not its converged "
+        "value (the reference trains for days); where that best is its first evaluation "
+        "(an untrained field's score) there is no speed-up to report. ngp's last point stands "
+        "in for its "
+        "converged PSNR. Each run's learning rate decays over its own budget, so ngp's 60 s "
+        "point of a longer run is taken mid-schedule (a run with `--budget-s ngp=60` measures "
+        "a 60 s schedule).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _md_protocol(result: dict) -> str:
+    """One paragraph: versions, preset, budgets, evaluation and timing rules, schedules."""
+    proto = result["protocol"]
+    return (
         f"Commit {', '.join(result['git_commits'])}; torch {', '.join(result['torch'])}, "
         f"warp {', '.join(result['warp'])}. Preset {proto['preset']}; budgets "
         + ", ".join(f"{b} {s:g} s" for b, s in proto["budgets_s"].items())
@@ -202,13 +220,18 @@ def markdown(result: dict) -> str:
             f"{b} {lad} " + ", ".join(f"{t:g}" for t in SCHEDULES[lad][:12]) + " … s"
             for b, lad in proto.get("schedules", {"all": "coarse"}).items()
         )
-        + ").",
-        "",
+        + ")."
+    )
+
+
+def _md_backend_table(summary: dict) -> list[str]:
+    """One row per (scene, backend): best PSNR and SSIM, time and steps to it, last point."""
+    lines = [
         "| scene | backend | best PSNR | SSIM there | train s to best | steps | last point s "
         "| PSNR there |",
         "|---|---|---:|---:|---:|---:|---:|---:|",
     ]
-    for scene, s in result["summary"].items():
+    for scene, s in summary.items():
         for b, v in s["backends"].items():
             flag = "" if v["finished"] else " (unfinished)"
             lines.append(
@@ -217,61 +240,52 @@ def markdown(result: dict) -> str:
                 f"{_f(v['step_at_best'], 'd')} | {_f(v['last_train_s'], '.1f')} | "
                 f"{_f(v['last_psnr'])} |"
             )
-    lines += [
+    return lines
+
+
+def _md_comparison_table(summary: dict) -> list[str]:
+    """One row per scene: ngp's speed-up to vanilla's best PSNR and its 60 s gap vs targets."""
+    lines = [
         "",
         "| scene | vanilla best PSNR | vanilla s to best | ngp s to same PSNR (point before) "
         f"| speed-up (target ≥ {TARGET_SPEEDUP:g}×) | ngp PSNR at 60 s | ngp PSNR last "
         f"(s) | gap (target ≤ {TARGET_GAP_DB:g} dB) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for scene, s in result["summary"].items():
-        c = s.get("ngp_vs_vanilla")
-        g = s.get("ngp_60s")
-        if c is None:
-            cmp = "| — | — | — | — (needs both backends) "
-        elif not c.get("vanilla_learned", True):
-            cmp = (
-                f"| {_f(c['vanilla_best_psnr'])} | {_f(c['vanilla_time_to_best_s'], '.1f')} "
-                "| — | none: vanilla never rose above its first evaluation "
-            )
-        elif not c["reached"]:
-            ngp_b = s["backends"]["ngp"]
-            cmp = (
-                f"| {_f(c['vanilla_best_psnr'])} | {_f(c['vanilla_time_to_best_s'], '.1f')} "
-                f"| not reached in {_f(ngp_b['last_train_s'], '.0f')} s | not reached "
-            )
-        else:
-            met = "met" if c["speedup"] >= TARGET_SPEEDUP else "not met"
-            interp = (
-                f"; {c['speedup_interp']:.0f}× interpolated" if finite(c["speedup_interp"]) else ""
-            )
-            cmp = (
-                f"| {_f(c['vanilla_best_psnr'])} | {_f(c['vanilla_time_to_best_s'], '.1f')} "
-                f"| {_f(c['ngp_time_to_same_s'], '.1f')} "
-                f"({_f(c['ngp_time_to_same_lower_s'] or None, '.1f', 'first point')}) "
-                f"| ≥ {c['speedup']:.1f}× ({met}{interp}) "
-            )
-        if g is None:
-            gap = "| n/a (ngp budget ≤ 60 s or no ngp run) | — | — |"
-        else:
-            gap = (
-                f"| {_f(g['psnr_at_60s'])} ({_f(g['train_s'], '.0f')} s) | "
-                f"{_f(g['last_psnr'])} ({_f(g['last_train_s'], '.0f')}) | "
-                f"{g['gap_db']:+.2f} dB ({'met' if g['met'] else 'not met'}) |"
-            )
-        lines.append(f"| {scene} " + cmp + gap)
-    lines += [
-        "",
-        "The vanilla backend's best is its best within its budget, not its converged "
-        "value (the reference trains for days); where that best is its first evaluation "
-        "(an untrained field's score) there is no speed-up to report. ngp's last point stands "
-        "in for its "
-        "converged PSNR. Each run's learning rate decays over its own budget, so ngp's 60 s "
-        "point of a longer run is taken mid-schedule (a run with `--budget-s ngp=60` measures "
-        "a 60 s schedule).",
-        "",
-    ]
-    return "\n".join(lines)
+    for scene, s in summary.items():
+        lines.append(f"| {scene} " + _md_speedup_cells(s) + _md_gap_cells(s.get("ngp_60s")))
+    return lines
+
+
+def _md_speedup_cells(s: dict) -> str:
+    """The comparison row's vanilla best, its time, ngp's time to it and the speed-up."""
+    c = s.get("ngp_vs_vanilla")
+    if c is None:
+        return "| — | — | — | — (needs both backends) "
+    vanilla = f"| {_f(c['vanilla_best_psnr'])} | {_f(c['vanilla_time_to_best_s'], '.1f')} "
+    if not c.get("vanilla_learned", True):
+        return vanilla + "| — | none: vanilla never rose above its first evaluation "
+    if not c["reached"]:
+        ngp_b = s["backends"]["ngp"]
+        return vanilla + f"| not reached in {_f(ngp_b['last_train_s'], '.0f')} s | not reached "
+    met = "met" if c["speedup"] >= TARGET_SPEEDUP else "not met"
+    interp = f"; {c['speedup_interp']:.0f}× interpolated" if finite(c["speedup_interp"]) else ""
+    return vanilla + (
+        f"| {_f(c['ngp_time_to_same_s'], '.1f')} "
+        f"({_f(c['ngp_time_to_same_lower_s'] or None, '.1f', 'first point')}) "
+        f"| ≥ {c['speedup']:.1f}× ({met}{interp}) "
+    )
+
+
+def _md_gap_cells(g: dict | None) -> str:
+    """The comparison row's ngp PSNR at 60 s, its last PSNR and the gap against the target."""
+    if g is None:
+        return "| n/a (ngp budget ≤ 60 s or no ngp run) | — | — |"
+    return (
+        f"| {_f(g['psnr_at_60s'])} ({_f(g['train_s'], '.0f')} s) | "
+        f"{_f(g['last_psnr'])} ({_f(g['last_train_s'], '.0f')}) | "
+        f"{g['gap_db']:+.2f} dB ({'met' if g['met'] else 'not met'}) |"
+    )
 
 
 def collect(curves: list[dict], protocol: dict) -> dict:

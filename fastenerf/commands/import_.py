@@ -9,6 +9,8 @@ scene's clock.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 HELP = "import an AEDAT4 recording (DV, DAVIS 346/346C) as a native scene folder"
 
 IMPORT_FILE = "import.json"
@@ -94,22 +96,38 @@ def add_arguments(p) -> None:
 
 
 def run(args) -> int:
-    import math
-    from pathlib import Path
-
+    """Load the recording, build the scene's config and write the scene folder."""
     from ..outputs import SCENE, claim_output
 
     claim_output(args.out, SCENE, force=args.force)
 
-    from ..config import CylinderConfig, IntrinsicsConfig, SceneConfig, TrajectoryConfig
-    from ..data.formats.aedat import load_aedat4
-    from ..data.formats.eventnerf import REAL_BACKGROUND
-    from ..data.formats.native import save_scene
-    from ..data.intrinsics import read_intrinsics
-    from ..errors import InputError
-    from ..io import atomic_dir, write_json
-
     crop = None if args.crop is None else (round(args.crop[0]), round(args.crop[1]))
+    rec = _load_recording(args, crop)
+    bayer = _colour_filter(args, rec)
+    intr = _intrinsics(args, rec.events)
+    motion = _motion(args, rec, t_end=int(rec.events.t[-1]) + 1)
+    cfg = _scene_config(args, rec.events, intr, bayer, motion)
+    _write_scene(args, rec, crop, cfg, motion.poses)
+    return 0
+
+
+class _Motion(NamedTuple):
+    """How the camera moves over the scene's stream: its trajectory, whether the stream loops,
+    the density cylinder, timed poses ((M,) µs, (M, 4, 4) c2w) for a timed trajectory, and the
+    stream's end (µs, exclusive)."""
+
+    trajectory: object  # TrajectoryConfig
+    loop: bool
+    cylinder: object  # CylinderConfig | None
+    poses: tuple | None
+    t_end: int
+
+
+def _load_recording(args, crop):
+    """The AEDAT4 recording (events cropped to `crop` µs, frames if asked), with a summary line."""
+    from ..data.formats.aedat import load_aedat4
+    from ..errors import InputError
+
     rec = load_aedat4(args.recording, t_crop_us=crop, keep_frames=args.frames)
     if args.frames and not rec.frames:
         raise InputError(f"{args.recording}: --frames, but the recording has no APS frames")
@@ -118,7 +136,12 @@ def run(args) -> int:
         f"{args.recording}: {len(ev):,} events, {ev.width}x{ev.height}, "
         f"{ev.duration_us * 1e-6:.3f} s, frames {list(rec.frame_formats) or 'none'}"
     )
+    return rec
 
+
+def _colour_filter(args, rec) -> str:
+    """The colour filter, "rggb" or "mono": --bayer, else guessed from the recording's frames
+    (and said so)."""
     bayer = args.bayer or ("rggb" if rec.color_frames else "mono")
     if args.bayer is None:
         print(
@@ -130,6 +153,14 @@ def run(args) -> int:
             )
             + ")"
         )
+    return bayer
+
+
+def _intrinsics(args, ev):
+    """--intrinsics read for the sensor, else a nominal pinhole (fx = fy = width) with a warning."""
+    from ..config import IntrinsicsConfig
+    from ..data.intrinsics import read_intrinsics
+
     intr = read_intrinsics(args.intrinsics, ev.width, ev.height) if args.intrinsics else None
     if intr is None:
         intr = IntrinsicsConfig(
@@ -139,92 +170,141 @@ def run(args) -> int:
             "warning: no --intrinsics: wrote a nominal pinhole (fx = fy = width); calibrate "
             "the lens and import again before training"
         )
+    return intr
 
-    t_end = int(ev.t[-1]) + 1
-    poses = None
-    loop = False
-    cylinder = None
+
+def _motion(args, rec, t_end: int) -> _Motion:
+    """The camera's motion from --turntable, --poses or neither (a placeholder turntable)."""
+    import math
+
+    from ..errors import InputError
+
     if args.turntable:
-        from ..data.calibrate import load_calibration
-
-        traj, calib = load_calibration(args.turntable, args.frame)
-        if args.rpm:
-            traj.period_us, traj.t0_us = round(60e6 / args.rpm), 0  # phase: any start will do
-        elif calib.get("period_fitted", False):
-            # Timed calibration on DV's clock: move its reference time onto the scene's clock
-            # (a whole number of periods away, so the angle at every time is unchanged).
-            traj.t0_us = (traj.t0_us - rec.t_origin_us) % traj.period_us
-        else:
-            raise InputError(
-                f"{args.turntable}: has no fitted period (no times); pass --rpm "
-                "(45 for the paper's turntable)"
-            )
-        if args.direction:
-            traj.clockwise = args.direction == "cw"
-        loop = True
-        revs = t_end / traj.period_us
-        k = max(1, round(revs))
-        if abs(t_end - k * traj.period_us) <= 0.01 * traj.period_us:
-            t_end = k * traj.period_us  # whole revolutions: the loop closes exactly
-        else:
-            print(
-                f"warning: the events span {revs:.3f} revolutions; for a seamless loop crop "
-                f"to whole ones, e.g. --crop T0 T0+{traj.period_us * k}"
-            )
-        if not args.no_cylinder:
-            cylinder = CylinderConfig(*args.cylinder) if args.cylinder else CylinderConfig()
+        motion = _calibrated_turntable(args, rec, t_end)
     elif args.poses:
-        from ..data.calibrate import load_calibration_poses
-
-        c2w, t = load_calibration_poses(args.poses)
-        if t is None:
-            raise InputError(f"{args.poses}: timed poses need an array 't' (µs)")
-        if not args.poses_relative:
-            t = t - rec.t_origin_us
-        if t[0] > 0 or t[-1] < t_end - 1:
-            print(
-                f"warning: poses span [{t[0]}, {t[-1]}] µs but the events [0, {t_end - 1}]; "
-                "outside it the pose is held constant"
-            )
-        poses = (t, c2w)
-        traj = TrajectoryConfig(kind="timed", poses_file="poses.npz")
-        if args.cylinder and not args.no_cylinder:
-            cylinder = CylinderConfig(*args.cylinder)
+        motion = _timed_poses(args, rec, t_end)
     else:
-        traj = TrajectoryConfig(kind="turntable")
-        if args.rpm:
-            traj.period_us = round(60e6 / args.rpm)
-        loop = True
-        cylinder = (
-            None
-            if args.no_cylinder
-            else (CylinderConfig(*args.cylinder) if args.cylinder else CylinderConfig())
-        )
-        print(
-            "warning: no --turntable or --poses: wrote a placeholder turntable; run "
-            "`fastenerf calibrate --chequerboard CALIB.aedat4 --board COLSxROWS --square SIDE "
-            f"--out CALIB.json --scene {args.out}` (or with POSES.npz) next"
-        )
+        motion = _placeholder_turntable(args, t_end)
+    traj = motion.trajectory
     if not all(math.isfinite(v) for v in (traj.radius, traj.period_us)):
         raise InputError(f"{args.turntable}: turntable parameters are not finite")
+    return motion
 
-    cfg = SceneConfig(
+
+def _calibrated_turntable(args, rec, t_end: int) -> _Motion:
+    """The --turntable calibration on the scene's clock; the stream's end snapped to whole
+    revolutions when it is within 1% of them, so the loop closes exactly."""
+    from ..config import CylinderConfig
+    from ..data.calibrate import load_calibration
+    from ..errors import InputError
+
+    traj, calib = load_calibration(args.turntable, args.frame)
+    if args.rpm:
+        traj.period_us, traj.t0_us = round(60e6 / args.rpm), 0  # phase: any start will do
+    elif calib.get("period_fitted", False):
+        # Timed calibration on DV's clock: move its reference time onto the scene's clock
+        # (a whole number of periods away, so the angle at every time is unchanged).
+        traj.t0_us = (traj.t0_us - rec.t_origin_us) % traj.period_us
+    else:
+        raise InputError(
+            f"{args.turntable}: has no fitted period (no times); pass --rpm "
+            "(45 for the paper's turntable)"
+        )
+    if args.direction:
+        traj.clockwise = args.direction == "cw"
+    revs = t_end / traj.period_us
+    k = max(1, round(revs))
+    if abs(t_end - k * traj.period_us) <= 0.01 * traj.period_us:
+        t_end = k * traj.period_us  # whole revolutions: the loop closes exactly
+    else:
+        print(
+            f"warning: the events span {revs:.3f} revolutions; for a seamless loop crop "
+            f"to whole ones, e.g. --crop T0 T0+{traj.period_us * k}"
+        )
+    cylinder = None
+    if not args.no_cylinder:
+        cylinder = CylinderConfig(*args.cylinder) if args.cylinder else CylinderConfig()
+    return _Motion(traj, True, cylinder, None, t_end)
+
+
+def _timed_poses(args, rec, t_end: int) -> _Motion:
+    """The --poses file on the scene's clock (a timed trajectory, no loop)."""
+    from ..config import CylinderConfig, TrajectoryConfig
+    from ..data.calibrate import load_calibration_poses
+    from ..errors import InputError
+
+    c2w, t = load_calibration_poses(args.poses)
+    if t is None:
+        raise InputError(f"{args.poses}: timed poses need an array 't' (µs)")
+    if not args.poses_relative:
+        t = t - rec.t_origin_us
+    if t[0] > 0 or t[-1] < t_end - 1:
+        print(
+            f"warning: poses span [{t[0]}, {t[-1]}] µs but the events [0, {t_end - 1}]; "
+            "outside it the pose is held constant"
+        )
+    traj = TrajectoryConfig(kind="timed", poses_file="poses.npz")
+    cylinder = None
+    if args.cylinder and not args.no_cylinder:
+        cylinder = CylinderConfig(*args.cylinder)
+    return _Motion(traj, False, cylinder, (t, c2w), t_end)
+
+
+def _placeholder_turntable(args, t_end: int) -> _Motion:
+    """A default turntable (at --rpm if given) to be replaced by `fastenerf calibrate`."""
+    from ..config import CylinderConfig, TrajectoryConfig
+
+    traj = TrajectoryConfig(kind="turntable")
+    if args.rpm:
+        traj.period_us = round(60e6 / args.rpm)
+    cylinder = (
+        None
+        if args.no_cylinder
+        else (CylinderConfig(*args.cylinder) if args.cylinder else CylinderConfig())
+    )
+    print(
+        "warning: no --turntable or --poses: wrote a placeholder turntable; run "
+        "`fastenerf calibrate --chequerboard CALIB.aedat4 --board COLSxROWS --square SIDE "
+        f"--out CALIB.json --scene {args.out}` (or with POSES.npz) next"
+    )
+    return _Motion(traj, True, cylinder, None, t_end)
+
+
+def _scene_config(args, ev, intr, bayer: str, motion: _Motion):
+    """scene.json for a real capture (DESIGN §9's real-data thresholds and background)."""
+    from pathlib import Path
+
+    from ..config import SceneConfig
+    from ..data.formats.eventnerf import REAL_BACKGROUND
+
+    return SceneConfig(
         name=args.name or Path(args.recording).stem,
         width=ev.width,
         height=ev.height,
         intrinsics=intr,
-        trajectory=traj,
+        trajectory=motion.trajectory,
         bayer=None if bayer == "mono" else "rggb",
         pos_threshold=0.1,
         neg_threshold=0.1,
         polarity_offset=0.0,
         t_start_us=0,
-        t_end_us=t_end,
-        loop=loop,
-        cylinder=cylinder,
+        t_end_us=motion.t_end,
+        loop=motion.loop,
+        cylinder=motion.cylinder,
         background=list(REAL_BACKGROUND),
         kind="real",
     ).validate(f"{args.out}/scene.json")
+
+
+def _write_scene(args, rec, crop, cfg, poses) -> None:
+    """The scene folder at --out as a whole (import.json, frames if asked, the scene), then a
+    summary of the events."""
+    from pathlib import Path
+
+    from ..data.formats.native import save_scene
+    from ..io import atomic_dir, write_json
+
+    ev = rec.events
     out = Path(args.out)
     with atomic_dir(out) as tmp:  # the scene whole: nothing of an older one survives
         write_json(
@@ -251,7 +331,6 @@ def run(args) -> int:
         f"{rec.t_origin_us} µs (DV clock)"
     )
     print(f"wrote {out}")
-    return 0
 
 
 def _write_frames(folder, rec, source: str):

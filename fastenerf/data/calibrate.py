@@ -330,16 +330,67 @@ def fit_turntable(
         raise InputError(f"unknown calibration method {method!r} (use 'lm' or 'adam')")
     init = init or ("closed_form" if method == "lm" else "naive")
     c2w = _check_poses(c2w, t_us, source)
+    o, z_obs, up_obs, m0, scale = _normalised_poses(c2w, source)
+    q, basis, history, iters, elapsed = _solve(o, z_obs, up_obs, method, init, solver_options)
+
+    with torch.no_grad():
+        eye, z, n, ex, ez, C, r = (
+            a.numpy() if isinstance(a, torch.Tensor) else a
+            for a in _model(torch.from_numpy(q), torch.from_numpy(basis))
+        )
+    el = float(q[6])
+    el = math.atan2(math.sin(el), abs(math.cos(el)))  # same cameras, with cos(el) >= 0
+    C_w = C * scale + m0
+    beta, alpha, Ry = _yaw_and_tilt(n)
+    # The Turntable's in-plane axes, back in the poses frame, give its angle θ per pose.
+    ex_t = Ry.T @ np.array([1.0, 0.0, 0.0])
+    ez_t = Ry.T @ _rot_x(alpha) @ np.array([0.0, 0.0, 1.0])
+    theta = _angles(eye, C, ex_t, ez_t)
+
+    traj = TrajectoryConfig(
+        kind="turntable",
+        radius=float(r) * scale,
+        center=(Ry @ C_w).tolist(),
+        tilt_deg=math.degrees(alpha),
+        elevation_deg=math.degrees(el),
+    )
+    residuals = _residual_stats(c2w, C_w, eye * scale + m0, z, n)
+    traj = _place_in_time(traj, t_us, theta, source, residuals)
+    W = np.eye(4)
+    W[:3, :3] = Ry
+    return TurntableFit(
+        trajectory=traj,
+        period_fitted=t_us is not None,
+        world_yaw_deg=math.degrees(beta),
+        world_from_poses=W,
+        axis=n,
+        angles_deg=np.degrees(theta),
+        residuals=residuals,
+        method=method,
+        iterations=iters,
+        time_s=elapsed,
+        loss_history=np.asarray(history) * scale**2,
+        extras={"init": init, "arc_deg": _arc_deg(theta), "normalised_scale": scale},
+    )
+
+
+def _normalised_poses(c2w: np.ndarray, source: str):
+    """Camera centres o (M, 3) moved to their centroid m0 (3,) and divided by their mean
+    distance from it (scale, world units), so one learning rate / tolerance fits any units;
+    with the unit optical axes z_obs (M, 3) and camera "up" vectors up_obs (M, 3)."""
     o_w = c2w[:, :3, 3]
     z_obs = c2w[:, :3, 2] / np.linalg.norm(c2w[:, :3, 2], axis=1, keepdims=True)
     up_obs = -c2w[:, :3, 1]
-    # Normalise: centroid at 0, unit spread, so one learning rate / tolerance fits any units.
     m0 = o_w.mean(0)
     scale = float(np.linalg.norm(o_w - m0, axis=1).mean())
     if not scale > 0:
         raise InputError(f"{source}: all camera centres coincide")
-    o = (o_w - m0) / scale
+    return (o_w - m0) / scale, z_obs, up_obs, m0, scale
 
+
+def _solve(o, z_obs, up_obs, method: str, init: str, solver_options: dict):
+    """Start point and solver run, timed (s): (q (7 + M,), basis (3, 3), loss history,
+    iterations, seconds)."""
     import scipy.optimize  # noqa: F401 (imported before the clock starts: time the solve only)
 
     t_start = time.perf_counter()
@@ -351,20 +402,12 @@ def fit_turntable(
         raise InputError(f"unknown calibration start {init!r} (use 'closed_form' or 'naive')")
     solve = solve_lm if method == "lm" else solve_adam
     q, history, iters = solve(q0, basis, o, z_obs, **solver_options)
-    elapsed = time.perf_counter() - t_start
+    return q, basis, history, iters, time.perf_counter() - t_start
 
-    with torch.no_grad():
-        eye, z, n, ex, ez, C, r = (
-            a.numpy() if isinstance(a, torch.Tensor) else a
-            for a in _model(torch.from_numpy(q), torch.from_numpy(basis))
-        )
-    r = float(r)
-    el = float(q[6])
-    el = math.atan2(math.sin(el), abs(math.cos(el)))  # same cameras, with cos(el) >= 0
-    C_w = C * scale + m0
-    R_w = r * scale
 
-    # Express in TrajectoryConfig terms: world = R_y(β) · poses, axis = R_x(α) ŷ.
+def _yaw_and_tilt(n: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """The axis n (3,) in TrajectoryConfig terms, world = R_y(β) · poses, axis = R_x(α) ŷ:
+    (β, α) in radians, β in (-π/2, π/2], and R_y(β) (3, 3)."""
     beta = math.atan2(-n[0], n[2]) if math.hypot(n[0], n[2]) > 1e-12 else 0.0
     if beta > math.pi / 2:
         beta -= math.pi
@@ -372,47 +415,21 @@ def fit_turntable(
         beta += math.pi
     Ry = _rot_y(beta)
     n_w = Ry @ n
-    alpha = math.atan2(n_w[2], n_w[1])
-    # The Turntable's in-plane axes, back in the poses frame, give its angle θ per pose.
-    ex_t = Ry.T @ np.array([1.0, 0.0, 0.0])
-    ez_t = Ry.T @ _rot_x(alpha) @ np.array([0.0, 0.0, 1.0])
-    theta = _angles(eye, C, ex_t, ez_t)
+    return beta, math.atan2(n_w[2], n_w[1]), Ry
 
-    traj = TrajectoryConfig(
-        kind="turntable",
-        radius=R_w,
-        center=(Ry @ C_w).tolist(),
-        tilt_deg=math.degrees(alpha),
-        elevation_deg=math.degrees(el),
-    )
-    residuals = _residual_stats(c2w, C_w, eye * scale + m0, z, n)
-    period_fitted = False
+
+def _place_in_time(traj: TrajectoryConfig, t_us, theta: np.ndarray, source: str, residuals):
+    """Period, phase and direction from the times t_us (M,) µs (adding `time_rms_deg` to
+    `residuals`), or without times direction and phase from the poses' order."""
     if t_us is not None:
         traj, time_rms = _fit_rotation(traj, np.asarray(t_us, np.int64), theta, source)
         residuals["time_rms_deg"] = time_rms
-        period_fitted = True
     else:
         # Without times, take the poses' order as the capture order for the direction.
         steps = np.angle(np.exp(1j * np.diff(theta)))
         traj.clockwise = bool(np.median(steps) < 0)
         traj.phase_deg = math.degrees(theta[0])
-    W = np.eye(4)
-    W[:3, :3] = Ry
-    arc = _arc_deg(theta)
-    return TurntableFit(
-        trajectory=traj,
-        period_fitted=period_fitted,
-        world_yaw_deg=math.degrees(beta),
-        world_from_poses=W,
-        axis=n,
-        angles_deg=np.degrees(theta),
-        residuals=residuals,
-        method=method,
-        iterations=iters,
-        time_s=elapsed,
-        loss_history=np.asarray(history) * scale**2,
-        extras={"init": init, "arc_deg": arc, "normalised_scale": scale},
-    )
+    return traj
 
 
 def _fit_rotation(traj: TrajectoryConfig, t: np.ndarray, theta: np.ndarray, source: str):

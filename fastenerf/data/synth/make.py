@@ -154,12 +154,52 @@ def make_scene_result(
     rendered and simulated at a time; sim: simulator settings overriding threshold, bayer,
     noise and seed.
     """
-    from ...io import atomic_dir
     from ...memory import check_memory, synth_bytes
-    from ..formats.native import save_scene
-    from .gl import GLRenderer
+
+    # imported before the clock starts (by the steps below), so that wall_s times the work only
+    from ..formats.native import save_scene  # noqa: F401
+    from .gl import GLRenderer  # noqa: F401
 
     wall0 = time.perf_counter()
+    _check_options(fmt, width, height, frames, test_every, supersample, chunk)
+    est = synth_bytes(width, height, frames, test_every, chunk, supersample)
+    check_memory(est, f"{frames} frames at {width}x{height}")
+    sim = sim or SimulatorConfig(pos_threshold=threshold, bayer=bayer, noise=noise, seed=seed)
+    sim.validate()
+    scene = resolve_scene(name_or_mesh)
+    cfg = scene_config(scene, width, height, frames, sim.bayer, sim.pos_threshold, sim.log_eps)
+    cfg.neg_threshold = sim.pos_threshold if sim.neg_threshold is None else sim.neg_threshold
+    rig = Turntable(cfg.trajectory)
+    t_all = np.arange(frames, dtype=np.int64) * FRAME_US
+    test_idx = np.arange(0, frames, test_every)
+    events, test_rgb, render_s, simulate_s = _render_and_simulate(
+        scene, rig, sim, width, height, frames, test_every, supersample, chunk, progress
+    )
+    if len(events) == 0:
+        raise InputError(
+            f"scene '{scene.name}' produced no events at {width}x{height} "
+            f"(threshold {sim.pos_threshold}): nothing to train on"
+        )
+    out = Path(out)
+    t1 = time.perf_counter()
+    _write(out, fmt, cfg, events, t_all[test_idx], rig(t_all[test_idx]), test_rgb)
+    write_s = time.perf_counter() - t1
+    return SynthResult(
+        out,
+        len(events),
+        frames * FRAME_US * 1e-6,
+        frames,
+        time.perf_counter() - wall0,
+        render_s,
+        simulate_s,
+        write_s,
+    )
+
+
+def _check_options(
+    fmt: str, width: int, height: int, frames: int, test_every: int, supersample: int, chunk: int
+) -> None:
+    """`make_scene_result`'s arguments, checked before any work (`InputError` if bad)."""
     if fmt not in ("native", "eventnerf"):
         raise InputError(f"unknown output format '{fmt}' (use native or eventnerf)")
     if width < 2 or height < 2 or width > 8192 or height > 8192:
@@ -178,17 +218,30 @@ def make_scene_result(
             )
     if supersample < 1 or chunk < 1:
         raise InputError(f"supersample and chunk must be at least 1 (got {supersample}, {chunk})")
-    est = synth_bytes(width, height, frames, test_every, chunk, supersample)
-    check_memory(est, f"{frames} frames at {width}x{height}")
-    sim = sim or SimulatorConfig(pos_threshold=threshold, bayer=bayer, noise=noise, seed=seed)
-    sim.validate()
-    scene = resolve_scene(name_or_mesh)
-    cfg = scene_config(scene, width, height, frames, sim.bayer, sim.pos_threshold, sim.log_eps)
-    cfg.neg_threshold = sim.pos_threshold if sim.neg_threshold is None else sim.neg_threshold
-    rig = Turntable(cfg.trajectory)
+
+
+def _render_and_simulate(
+    scene: SynthScene,
+    rig: Turntable,
+    sim: SimulatorConfig,
+    width: int,
+    height: int,
+    frames: int,
+    test_every: int,
+    supersample: int,
+    chunk: int,
+    progress: bool,
+):
+    """Render the revolution `chunk` frames at a time and feed them to the simulator, closing
+    the loop at t = frames * 1000 µs.
+
+    Returns (events, test_rgb (T, height, width, 3) uint8 display-space views of every
+    `test_every`-th frame, render seconds, simulate seconds).
+    """
+    from .gl import GLRenderer
+
     t_all = np.arange(frames, dtype=np.int64) * FRAME_US
-    test_idx = np.arange(0, frames, test_every)
-    test_rgb = np.zeros((len(test_idx), height, width, 3), np.uint8)
+    test_rgb = np.zeros((len(range(0, frames, test_every)), height, width, 3), np.uint8)
     simulator = EventSimulator(width, height, sim)
     bar = _progress(frames, f"synth {scene.name}", progress)
     intr = scene.view.intrinsics(width, height)
@@ -211,35 +264,19 @@ def make_scene_result(
     bar.close()
     events = simulator.finish((0, frames * FRAME_US))
     simulate_s += clock() - t1
-    if len(events) == 0:
-        raise InputError(
-            f"scene '{scene.name}' produced no events at {width}x{height} "
-            f"(threshold {sim.pos_threshold}): nothing to train on"
-        )
-    out = Path(out)
-    t1 = clock()
+    return events, test_rgb, render_s, simulate_s
+
+
+def _write(out: Path, fmt: str, cfg: SceneConfig, events, test_t, test_c2w, test_rgb) -> None:
+    """The scene folder at `out` as a whole, native or EventNeRF (test views: times (T,) µs,
+    c2w (T, 4, 4), display-space images (T, H, W, 3) uint8)."""
+    from ...io import atomic_dir
+    from ..formats.native import save_scene
+
     with atomic_dir(out) as tmp:
-        save_scene(
-            tmp,
-            cfg,
-            events,
-            test_t=t_all[test_idx],
-            test_c2w=rig(t_all[test_idx]),
-            test_rgb=test_rgb,
-        )
+        save_scene(tmp, cfg, events, test_t=test_t, test_c2w=test_c2w, test_rgb=test_rgb)
         if fmt == "eventnerf":
             _to_eventnerf(tmp)
-    write_s = clock() - t1
-    return SynthResult(
-        out,
-        len(events),
-        frames * FRAME_US * 1e-6,
-        frames,
-        clock() - wall0,
-        render_s,
-        simulate_s,
-        write_s,
-    )
 
 
 def _to_eventnerf(folder: Path) -> None:
