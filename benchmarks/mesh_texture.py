@@ -80,8 +80,8 @@ def field_renders(field, c2w, intr, sc, bg, chunk: int) -> tuple[np.ndarray, np.
 def run(args: argparse.Namespace) -> int:
     from fastenerf.data.rig import Intrinsics
     from fastenerf.mesh import decimate, field_mesh, render_views
-    from fastenerf.texture import bake_texture, export_textured
     from fastenerf.run import load_run, scene_background
+    from fastenerf.texture import bake_texture, export_textured
 
     if args.views < 1 or args.scale <= 0 or args.texture_size < 16 or args.dirs < 1:
         raise InputError("--views and --dirs must be >= 1, --scale > 0, --texture-size >= 16")

@@ -110,9 +110,7 @@ def vertex_colors(
     t2 = np.cross(nrm, t1)
     acc = np.zeros((len(vertices), 3), np.float64)
     step = max(1, chunk // n_dirs)
-    for s in progress_bar(
-        range(0, len(vertices), step), desc=desc, unit="chunk", enabled=progress
-    ):
+    for s in progress_bar(range(0, len(vertices), step), desc=desc, unit="chunk", enabled=progress):
         sl = slice(s, s + step)
         d = (
             local[None, :, :1] * t1[sl, None]
