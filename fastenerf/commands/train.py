@@ -44,6 +44,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help='backend options as JSON, e.g. \'{"depth": 4, "width": 128}\'',
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--data-parallel",
+        action="store_true",
+        help="under torchrun: the ranks train this one run together, each on its own "
+        "--rays pixels per step (fastenerf.data_parallel)",
+    )
 
 
 def build_config(args: argparse.Namespace):
@@ -100,9 +106,16 @@ def run(args: argparse.Namespace) -> int:
     from ..train import Trainer
 
     claim_output(args.out, RUN, force=None)
+    progress = not args.no_progress
     cfg = build_config(args)
     scene = load_scene_folder(args.scene)
-    trainer = Trainer(scene, cfg, args.out, resume=args.resume)
+    hooks = None
+    if args.data_parallel:
+        from ..data_parallel import data_parallel_trainer
+
+        trainer, hooks = data_parallel_trainer(scene, cfg, args.out, args.resume, progress)
+    else:
+        trainer = Trainer(scene, cfg, args.out, resume=args.resume)
     c = trainer.cfg
     budget = f"{c.steps} steps" if c.steps is not None else f"{c.minutes:g} min"
     print(
@@ -111,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         f"{budget}, device {trainer.device}"
         + (f", resuming at step {trainer.step_count}" if args.resume else "")
     )
-    summary = trainer.run(progress=not args.no_progress)
+    summary = trainer.run(hooks, progress=progress)
     if summary["failure"]:
         raise InputError(summary["failure"])
     psnr = summary["last_eval_psnr"]
