@@ -69,15 +69,30 @@ REPEAT_S = 2.0
 
 
 class GradientAverager:
-    """Averages the gradients of `trainer`'s parameters over the ranks before each optimiser
-    step (see the module docstring); `catch_up()` is the all-reduce of a rank that skipped."""
+    """Averages the gradients of `params` over the ranks: `reduce()`, run by a pre-hook of
+    `optimizer` (when given) before each of its steps; `catch_up()` is the all-reduce of a
+    rank that skipped its step (see the module docstring).
 
-    def __init__(self, trainer: Trainer, world: World):
-        self.trainer, self.world = trainer, world
-        self.params = [p for g in trainer.optimizer.param_groups for p in g["params"]]
+    params: the parameters, in the same order on every rank; device: where the flat buffer
+    lives (the parameters' device; NCCL needs CUDA tensors).
+    """
+
+    def __init__(
+        self,
+        params: list[torch.nn.Parameter],
+        world: World,
+        device: torch.device,
+        optimizer: torch.optim.Optimizer | None = None,
+    ):
+        self.params, self.world, self.device = list(params), world, device
+        self.big = [p for p in self.params if p.numel() >= BUCKET_NUMEL]
+        self.small = [p for p in self.params if p.numel() < BUCKET_NUMEL]
         self.reduced = False  # this step's all-reduce is done
+        self.finite_here = True  # this rank's loss was finite at the last reduce
         self.skipped = False  # some rank's loss was not finite: nobody updated
-        self.handle = trainer.optimizer.register_step_pre_hook(self._before_step)
+        self.handle = None
+        if optimizer is not None:
+            self.handle = optimizer.register_step_pre_hook(self._before_step)
 
     def _before_step(self, optimizer, args, kwargs) -> None:
         self.reduce(finite=True)
@@ -88,39 +103,36 @@ class GradientAverager:
             self.reduce(finite=False)
         self.reduced = False
 
-    def reduce(self, finite: bool) -> None:
+    def reduce(self, finite: bool = True) -> None:
         """Sum the gradients (zeros where a rank has none) and the count of ranks whose loss was
         finite; average, or drop every gradient (the optimiser then skips) if one was not."""
         n = self.world.size
-        big = [p for p in self.params if p.numel() >= BUCKET_NUMEL]
-        small = [p for p in self.params if p.numel() < BUCKET_NUMEL]
         for p in self.params:
             if p.grad is None or not finite:
                 p.grad = torch.zeros_like(p)
-        flag = torch.ones(1, device=self.trainer.device) * float(finite)
-        flat = torch.cat([*(p.grad.reshape(-1).float() for p in small), flag])
+        flag = torch.full((1,), float(finite), device=self.device)
+        flat = torch.cat([*(p.grad.reshape(-1).float() for p in self.small), flag])
         dist.all_reduce(flat)
-        for p in big:
+        for p in self.big:
             dist.all_reduce(p.grad)
-        self.reduced = True
+        self.reduced, self.finite_here = True, finite
         self.skipped = int(round(float(flat[-1]))) < n
         if self.skipped:
             for p in self.params:
                 p.grad = None
-            if finite:  # the trainer counts its own skips only
-                self.trainer.skipped_steps += 1
             return
         flat.div_(n)
         offset = 0
-        for p in small:
+        for p in self.small:
             k = p.numel()
             p.grad.copy_(flat[offset : offset + k].view_as(p))
             offset += k
-        for p in big:
+        for p in self.big:
             p.grad.div_(n)
 
     def remove(self) -> None:
-        self.handle.remove()
+        if self.handle is not None:
+            self.handle.remove()
 
 
 def rank_sampler_seed(seed: int, rank: int, step: int) -> tuple[dict, int]:
@@ -166,7 +178,9 @@ def make_data_parallel(trainer: Trainer, world: World | None = None) -> DataPara
         raise RuntimeError("make_data_parallel needs a process group (distributed.init)")
     broadcast_state(trainer, world)
     reseed_sampler(trainer, world.rank)
-    return DataParallelSync(GradientAverager(trainer, world), world)
+    params = [p for g in trainer.optimizer.param_groups for p in g["params"]]
+    averager = GradientAverager(params, world, trainer.device, trainer.optimizer)
+    return DataParallelSync(averager, world)
 
 
 class DataParallelSync(Hook):
@@ -197,6 +211,8 @@ class DataParallelSync(Hook):
 
     def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
         self.averager.catch_up()
+        if self.averager.skipped and self.averager.finite_here:
+            trainer.skipped_steps += 1  # another rank's loss was not finite (it counts its own)
         stop = trainer.stopped or self.signalled is not None
         v = torch.tensor(
             [trainer.train_seconds, float(stop), float(trainer.failure is not None)],

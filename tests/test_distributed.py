@@ -221,16 +221,32 @@ def _rank(rank: int, world_size: int, scene_dir: str, tmp: str) -> None:
             for p in trainer.field.parameters():
                 p.add_(torch.randn_like(p))
     deterministic_render(trainer.field)
-    make_data_parallel(trainer, world)
+    sync = make_data_parallel(trainer, world)
     batch = peek_batch(trainer)
     stats = trainer.step()
+    sync.after_step(trainer, stats)
     grads = {n: p.grad.clone() for n, p in trainer.field.named_parameters() if p.grad is not None}
+    weights = {k: v.clone() for k, v in trainer.field.state_dict().items()}
+    # step 2: rank 1's loss is NaN; it skips backward, yet both ranks must meet and skip
+    if rank == 1:
+        bad = peek_batch(trainer)
+        bad.target = bad.target * float("nan")
+        trainer.sampler.sample = lambda: bad
+    trainer.cfg.steps = 2
+    summary = trainer.run([sync], progress=False)
     torch.save(
         {
             "batch": batch.__dict__,
             "loss": stats["loss"],
-            "weights": trainer.field.state_dict(),
+            "weights": weights,
             "grads": grads,
+            "nan_step": {
+                "steps": summary["steps"],
+                "skipped_steps": trainer.skipped_steps,
+                "unchanged": all(
+                    torch.equal(v, weights[k]) for k, v in trainer.field.state_dict().items()
+                ),
+            },
         },
         f"{tmp}/rank{rank}.pt",
     )
@@ -283,3 +299,6 @@ def test_two_rank_step_equals_one_process_step_on_the_union_batch(tiny_scene, tm
     for name, w in one.field.state_dict().items():
         torch.testing.assert_close(r0["weights"][name], w, rtol=0, atol=1e-3 * lr)
         torch.testing.assert_close(r1["weights"][name], w, rtol=0, atol=1e-3 * lr)
+    # a non-finite loss on one rank: no deadlock, and no rank updates (as one process would not)
+    for r in (r0, r1):
+        assert r["nan_step"] == {"steps": 2, "skipped_steps": 1, "unchanged": True}
