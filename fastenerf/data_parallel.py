@@ -295,7 +295,8 @@ def data_parallel_trainer(
         sys.stdout = open(os.devnull, "w")  # noqa: SIM115 - for the life of the process
     try:
         trainer = Trainer(scene, cfg, scratch or out_dir, resume=resume and world.is_main)
-        if not dist.is_initialized():  # one rank: plain training
+        if not dist.is_initialized():
+            print("--data-parallel outside torchrun (one rank): training as usual")
             return trainer, default_hooks(trainer, progress)
         sync = make_data_parallel(trainer, world)
     except BaseException:
