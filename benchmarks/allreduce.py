@@ -46,6 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backends", nargs="+", choices=["ngp", "vanilla"], default=["ngp", "vanilla"])
     p.add_argument("--device", default="auto", help="auto (cuda:LOCAL_RANK or cpu), cpu")
     p.add_argument("--scene", default=None, help="scene folder (default: a tiny synthetic one)")
+    p.add_argument("--preset", choices=["fast", "eventnerf"], default="fast", help="default fast")
     p.add_argument("--rays", type=int, default=None, help="pixels per step (default: device's)")
     p.add_argument("--reps", type=int, default=20, help="timed all-reduces")
     p.add_argument("--steps", type=int, default=5, help="timed training steps")
@@ -72,7 +73,7 @@ def make_trainer(scene, backend: str, args, device: torch.device, out: Path):
     from fastenerf.train import Trainer
 
     cfg = train_preset(
-        "fast",
+        args.preset,
         backend,
         steps=args.warmup + args.steps,
         rays_per_step=args.rays,
@@ -124,6 +125,7 @@ def measure(backend: str, scene, args, world: World, scratch: Path) -> dict[str,
     step, dp_step, red = (statistics.median(x) for x in (single, hook.ms, reduce_ms))
     table = sizes.get("table", 0)
     return {
+        "preset": tr.cfg.preset,
         "rays_per_step_per_rank": tr.cfg.rays_per_step,
         "params": sum(sizes.values()),
         "param_bytes": 4 * sum(sizes.values()),
