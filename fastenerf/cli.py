@@ -19,6 +19,7 @@ COMMANDS = [
     "simulate",
     "info",
     "train",
+    "train-many",
     "eval",
     "render",
     "mesh",
@@ -31,8 +32,12 @@ COMMANDS = [
 ]
 
 
+def _module_name(name: str) -> str:
+    return f"fastenerf.commands.{name.replace('import', 'import_').replace('-', '_')}"
+
+
 def _module(name: str):
-    return importlib.import_module(f"fastenerf.commands.{name.replace('import', 'import_')}")
+    return importlib.import_module(_module_name(name))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
         try:
             mod = _module(name)
         except ModuleNotFoundError as e:
-            if e.name != f"fastenerf.commands.{name.replace('import', 'import_')}":
+            if e.name != _module_name(name):
                 raise
             continue  # command not built yet
         p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)

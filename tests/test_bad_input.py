@@ -155,6 +155,12 @@ def chain(*setups: Callable[[Path], None]) -> Callable[[Path], None]:
     return setup
 
 
+def many_folder(tmp: Path) -> None:
+    """A train-many folder holding a run of the job `train-many {run}` plans (run-ngp)."""
+    (tmp / "runs" / "run-ngp").mkdir(parents=True)
+    (tmp / "runs" / "run-ngp" / "checkpoint.pt").write_bytes(b"not read")
+
+
 # ---------------------------------------------------------------------------- the table
 
 
@@ -220,6 +226,15 @@ OUTPUT_ROWS = [
     R("train-over-a-run", "output: existing run without --resume",
       TRAIN.replace("{tmp}/r", "{run}"), None,
       2, "already holds a training run", "run/checkpoint.pt run/config.json"),
+    R("train-many-into-notes-folder", "output: existing folder of another kind",
+      "train-many {scene} --out {tmp}/d --steps 1 " + TINY.replace("--backend", "--backends"),
+      notes_folder(), 2, "not a train_many benchmark folder", "d/notes.txt"),
+    R("train-many-missing-scene", "input: a scene folder that is not there",
+      "train-many {scene} {tmp}/nope --out {tmp}/m --steps 1 --no-progress", None,
+      2, "no such scene folder"),
+    R("train-many-over-its-runs", "output: existing runs without --resume",
+      "train-many {run} --out {tmp} --steps 1 --no-progress", many_folder,
+      2, "already holds a training run", "runs/run-ngp/checkpoint.pt"),
     R("eval-into-notes-folder", "output: existing non-eval folder",
       "eval {run} --out {tmp}/d", notes_folder(), 2, "not an eval folder", "d/notes.txt"),
     R("eval-read-only", "output: read-only",

@@ -72,6 +72,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "real scene of a released name gets the authors' clip). ngp's box shrinks to it.",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--data-parallel",
+        action="store_true",
+        help="under torchrun: the ranks train this one run together, each on its own "
+        "--rays pixels per step (fastenerf.data_parallel)",
+    )
     knobs = p.add_argument_group(
         "training options (default: the preset's, else the scene's or device's)"
     )
@@ -231,11 +237,18 @@ def run(args: argparse.Namespace) -> int:
     from ..train import Trainer
 
     claim_output(args.out, RUN, force=None)
+    progress = not args.no_progress
     cfg = build_config(args)
     cylinder = ... if args.cylinder is None else CylinderConfig.parse(args.cylinder)
     scene = load_scene_folder(args.scene)
     scene_cylinder(args, scene, cylinder)
-    trainer = Trainer(scene, cfg, args.out, resume=args.resume)
+    hooks = None
+    if args.data_parallel:
+        from ..data_parallel import data_parallel_trainer
+
+        trainer, hooks = data_parallel_trainer(scene, cfg, args.out, args.resume, progress)
+    else:
+        trainer = Trainer(scene, cfg, args.out, resume=args.resume)
     c = trainer.cfg
     budget = f"{c.steps} steps" if c.steps is not None else f"{c.minutes:g} min"
     cyl = scene.config.cylinder
@@ -246,7 +259,7 @@ def run(args: argparse.Namespace) -> int:
         + (f", clip r={cyl.radius:g} y {cyl.y_min:g}..{cyl.y_max:g}" if cyl else "")
         + (f", resuming at step {trainer.step_count}" if args.resume else "")
     )
-    summary = trainer.run(progress=not args.no_progress)
+    summary = trainer.run(hooks, progress=progress)
     if summary["failure"]:
         raise InputError(summary["failure"])
     psnr = summary["last_eval_psnr"]
