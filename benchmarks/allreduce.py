@@ -34,6 +34,7 @@ import torch.distributed as dist
 
 from benchmarks.cli import benchmark_main
 from benchmarks.session import jsonable, session_info
+from fastenerf.backends import BACKEND_NAMES
 from fastenerf.config import train_preset
 from fastenerf.data_parallel import GradientAverager, make_data_parallel
 from fastenerf.distributed import World, barrier, destroy, init, world_from_env
@@ -43,7 +44,9 @@ from fastenerf.io import write_json
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ranks", type=int, default=2, help="processes to start without torchrun")
-    p.add_argument("--backends", nargs="+", choices=["ngp", "vanilla"], default=["ngp", "vanilla"])
+    p.add_argument(
+        "--backends", nargs="+", choices=list(BACKEND_NAMES), default=list(BACKEND_NAMES)
+    )
     p.add_argument("--device", default="auto", help="auto (cuda:LOCAL_RANK or cpu), cpu")
     p.add_argument("--scene", default=None, help="scene folder (default: a tiny synthetic one)")
     p.add_argument("--preset", choices=["fast", "eventnerf"], default="fast", help="default fast")

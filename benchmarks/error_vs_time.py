@@ -53,6 +53,7 @@ from benchmarks.curve import (
     train_curve,
 )
 from benchmarks.session import finite, jsonable, session_info
+from fastenerf.backends import BACKEND_NAMES
 from fastenerf.errors import InputError
 from fastenerf.evaluate import COLOR_CORRECTION, make_eval_set
 from fastenerf.hooks import StopOnSignal
@@ -450,7 +451,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="scene folders with ground-truth test views",
     )
-    p.add_argument("--backends", nargs="+", default=["ngp", "vanilla"], choices=["ngp", "vanilla"])
+    p.add_argument(
+        "--backends", nargs="+", default=list(BACKEND_NAMES), choices=list(BACKEND_NAMES)
+    )
     p.add_argument(
         "--budget-s",
         nargs="+",

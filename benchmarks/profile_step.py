@@ -32,6 +32,7 @@ from benchmarks.cli import benchmark_main
 from benchmarks.curve import make_config
 from benchmarks.error_vs_time import load_scene_dir
 from benchmarks.session import jsonable, session_info
+from fastenerf.backends import BACKEND_NAMES
 from fastenerf.errors import InputError
 from fastenerf.hooks import Hook
 from fastenerf.io import atomic_path, write_json
@@ -258,7 +259,7 @@ def run(args: argparse.Namespace) -> int:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", required=True, help="scene folder")
-    p.add_argument("--backend", default="ngp", choices=["ngp", "vanilla"])
+    p.add_argument("--backend", default="ngp", choices=list(BACKEND_NAMES))
     p.add_argument("--preset", default="fast")
     p.add_argument("--warmup", type=int, default=200, help="steps before the profile")
     p.add_argument("--steps", type=int, default=50, help="profiled steps")

@@ -22,6 +22,7 @@ from typing import Any, Literal
 from . import backends
 from .backends import BACKEND_NAMES, get_option, parse_options
 from .errors import InputError
+from .perturb_config import PerturbConfig
 from .schema import check as _check
 from .schema import check_ranges, from_dict
 
@@ -564,66 +565,3 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
 
 
 # --------------------------------------------------------------------------------------------
-# Perturbations of the training data (robustness studies, supplement I and J; fastenerf/perturb.py).
-
-
-@dataclass
-class PerturbConfig:
-    """What is done to a scene's training data before training (RUN/config.json records it).
-
-    Only the training rig and events change; the test views stay exact. All zeros is the
-    identity (the clean scene).
-    """
-
-    pose_error_deg: float = 0.0
-    """Degrees: every training pose's rotation is turned by exactly this angle about its own
-    random axis (uniform on the sphere), about the camera centre (supplement I). In [0, 180)."""
-
-    noise_fraction: float = 0.0
-    """Uniformly random events (x, y, t, polarity ±1) added to the training stream, their
-    number this fraction of the clean stream's count (0.05 = 5 %; supplement J). In [0, 10]."""
-
-    seed: int = 0
-    """Seed of the perturbations (pose axes, noise events); independent of the training seed,
-    so runs at one level with other training seeds see the same perturbed data."""
-
-    @property
-    def active(self) -> bool:
-        """True when anything is perturbed (False: the clean scene, the identity)."""
-        return self.pose_error_deg != 0.0 or self.noise_fraction != 0.0
-
-    def validate(self, where: str = "perturb") -> PerturbConfig:
-        import numbers  # here, not at the top: this section is appended to a shared file
-
-        for key in ("pose_error_deg", "noise_fraction"):
-            v = getattr(self, key)
-            ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
-            _check(ok, where, key, f"must be a finite number, got {v!r}")
-        _check(
-            0.0 <= self.pose_error_deg < 180.0,
-            where,
-            "pose_error_deg",
-            f"must be in [0, 180) degrees, got {self.pose_error_deg}",
-        )
-        _check(
-            0.0 <= self.noise_fraction <= 10.0,
-            where,
-            "noise_fraction",
-            f"must be in [0, 10] (a fraction of the clean count), got {self.noise_fraction}",
-        )
-        _check(
-            isinstance(self.seed, numbers.Integral)
-            and not isinstance(self.seed, bool)
-            and self.seed >= 0,
-            where,
-            "seed",
-            f"must be a non-negative integer, got {self.seed!r}",
-        )
-        return self
-
-    def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any], where: str = "perturb") -> PerturbConfig:
-        return from_dict(cls, d, where).validate(where)

@@ -179,6 +179,7 @@ def load_run(
     if scene_dir.is_dir():
         try:
             scene = load_scene_folder(scene_dir)
+            scene.config.cylinder = sc.cylinder  # --cylinder may have overridden the folder's
         except InputError:
             scene = sc
     return field, scene, cfg

@@ -19,6 +19,7 @@ import torch
 
 from .config import TrainConfig
 from .errors import InputError
+from .fields import canonical_field_config
 from .io import atomic_path
 from .run import CHECKPOINT, CHECKPOINT_VERSION, METRICS_LOG, scene_fingerprint
 
@@ -143,7 +144,8 @@ def _is_default_of_new_key(key: str, value: Any) -> bool:
 def restore(tr: Trainer, ck: dict) -> None:
     """Load checkpoint `ck` into the freshly built trainer `tr`."""
     where = tr.out_dir / CHECKPOINT
-    if ck.get("field_config") != tr.field.config_dict():
+    saved = canonical_field_config(ck.get("backend", tr.cfg.backend), ck.get("field_config") or {})
+    if saved != tr.field.config_dict():
         raise InputError(
             f"{where}: cannot resume: the field was built differently (backend options changed)"
         )

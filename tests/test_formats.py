@@ -14,7 +14,8 @@ from fastenerf.cli import main
 from fastenerf.config import IntrinsicsConfig, TrajectoryConfig
 from fastenerf.data.events import EventIndex, EventStream
 from fastenerf.data.formats import load_any
-from fastenerf.data.formats.eventnerf import export_eventnerf, load_eventnerf
+from fastenerf.data.formats.eventnerf import load_eventnerf
+from fastenerf.data.formats.eventnerf_export import export_eventnerf
 from fastenerf.data.formats.native import (
     Scene,
     load_poses,

@@ -355,7 +355,8 @@ def test_command_poses_round_trip(tmp_path, random_stream, scene_config, capsys)
 
 
 def test_command_poses_from_an_eventnerf_folder(tmp_path, random_stream, scene_config):
-    from fastenerf.data.formats.eventnerf import export_eventnerf, load_eventnerf
+    from fastenerf.data.formats.eventnerf import load_eventnerf
+    from fastenerf.data.formats.eventnerf_export import export_eventnerf
 
     scene = small_scene(tmp_path, random_stream, scene_config)
     with pytest.warns(UserWarning, match="346x260"):  # small sensor: fine for us, not for them

@@ -284,7 +284,7 @@ def _to_eventnerf(folder: Path) -> None:
     import shutil
     import tempfile
 
-    from ..formats.eventnerf import export_eventnerf  # written by the formats helper
+    from ..formats.eventnerf_export import export_eventnerf
     from ..formats.native import load_scene
 
     with tempfile.TemporaryDirectory(dir=folder.parent) as native:
