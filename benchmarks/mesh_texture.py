@@ -27,9 +27,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from benchmarks.cli import benchmark_main
-from benchmarks.error_vs_time import jsonable, session_info, sync
+from benchmarks.session import jsonable, session_info
 from fastenerf.errors import InputError
 from fastenerf.io import atomic_path, write_image, write_json
 
@@ -96,13 +97,15 @@ def run(args: argparse.Namespace) -> int:
         field, sc.aabb, sc.cylinder, resolution=args.resolution, threshold=args.threshold,
         n_dirs=args.dirs,
     )  # fmt: skip
-    sync(device)
+    if device is not None and device.type == "cuda":
+        torch.cuda.synchronize(device)
     t_mesh = time.perf_counter() - t0
     t0 = time.perf_counter()
     simple = decimate(mesh, args.faces) if args.faces else mesh
     t_simplify = time.perf_counter() - t0
     textured, st = bake_texture(field.color, simple, args.texture_size, args.dirs, device=device)
-    sync(device)
+    if device is not None and device.type == "cuda":
+        torch.cuda.synchronize(device)
     glb = export_textured(textured, out / "mesh.glb")[0]
 
     c2w, pose_kind = view_poses(scene, sc, args.views)

@@ -29,7 +29,7 @@ def test_help_lists_every_training_knob_with_its_docstring(capsys):
         cli(["train", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     for f in dataclasses.fields(TrainConfig):
-        if f.name == "backend_options":
+        if f.name in ("backend_options", "perturb"):  # JSON; a section with its own flags
             continue
         assert flag_name(f.name) in text, f.name
         if f.name in ("backend", "preset"):  # hand-written help: choices of the registries
@@ -42,6 +42,8 @@ def test_help_lists_every_training_knob_with_its_docstring(capsys):
         assert flag in text  # loss and schedule
     assert "--rays-per-step N, --rays N" in text
     assert "TOTAL" in text  # --resume --steps N: the total budget, said in the help
+    for flag in ("--pose-error-deg", "--noise-fraction", "--perturb-seed"):
+        assert flag in text  # the studies' perturbations
 
 
 @pytest.mark.parametrize(

@@ -202,10 +202,11 @@ def build_config(args: argparse.Namespace):
         backend = args.backend or "ngp"
         flags = {k: v for k, v in flags.items() if k not in ("backend", "preset")}
         cfg = train_preset(args.preset or "fast", backend, backend_options=options, **flags)
-    if args.cone_angle is not None:
+    cone = getattr(args, "cone_angle", None)  # train-many shares this without the flag
+    if cone is not None:
         if cfg.backend != "ngp":
             raise InputError(f"--cone-angle: an ngp option (the backend is {cfg.backend})")
-        cfg.backend_options = set_option("ngp", cfg.backend_options, "cone_angle", args.cone_angle)
+        cfg.backend_options = set_option("ngp", cfg.backend_options, "cone_angle", cone)
     for key, value in _perturb_flags(args).items():
         setattr(cfg.perturb, key, value)
     return cfg.validate()

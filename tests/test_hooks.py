@@ -1,0 +1,94 @@
+"""The training loop's hooks: divergence guard, step-based checkpoints, scheduled evaluation."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from fastenerf.cli import main as cli_main
+from fastenerf.data.formats.native import load_scene
+from fastenerf.hooks import Checkpointer, DivergenceGuard, Hook, ScheduledEval
+from fastenerf.run import load_checkpoint, read_progress
+from fastenerf.train import Trainer
+from tests.test_train import tiny_cfg
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene):
+    return load_scene(tiny_scene)
+
+
+def poison_after(trainer: Trainer, good_steps: int) -> None:
+    """From step `good_steps` on, the loss is NaN (as a run whose weights blew up)."""
+    forward = trainer._forward
+
+    def nan_forward(batch):
+        out, loss, parts = forward(batch)
+        if trainer.step_count >= good_steps:
+            loss = loss * float("nan")
+        return out, loss, parts
+
+    trainer._forward = nan_forward
+
+
+def test_divergence_guard_stops_and_keeps_the_last_good_checkpoint(scene, tmp_path):
+    trainer = Trainer(scene, tiny_cfg(steps=200), tmp_path / "run")
+    poison_after(trainer, 3)
+    hooks = [DivergenceGuard(patience=5), Checkpointer(every_s=0, every_steps=1)]
+    summary = trainer.run(hooks)
+    # without the guard the run would go on to its 200 steps
+    assert summary["failure"] and "diverged" in summary["failure"]
+    assert summary["steps"] == 3 + 5 and "\n" not in summary["failure"]
+    ck = load_checkpoint(tmp_path / "run" / "checkpoint.pt")
+    assert ck["step"] == 3  # no checkpoint of a non-finite step, none at the end
+    weights = {k: v for k, v in trainer.field.state_dict().items()}
+    for k, v in ck["field"].items():  # the NaN steps never reached the weights
+        assert torch.equal(v, weights[k].cpu()), k
+    assert not read_progress(tmp_path / "run")["finished"]
+
+
+def test_train_command_reports_divergence_in_one_line(tiny_scene, tmp_path, capsys, monkeypatch):
+    """`fastenerf train` turns the guard's stop into exit 2 and one line."""
+    forward = Trainer._forward
+
+    def nan_forward(self, batch):
+        out, loss, parts = forward(self, batch)
+        return out, (loss * float("nan") if self.step_count >= 2 else loss), parts
+
+    monkeypatch.setattr(Trainer, "_forward", nan_forward)
+    argv = ["train", str(tiny_scene), "--out", str(tmp_path / "r"), "--backend", "vanilla"]
+    argv += ["--device", "cpu", "--rays", "32", "--steps", "100", "--no-progress"]
+    code = cli_main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "diverged" in err[0], err
+    assert read_progress(tmp_path / "r").get("step", 0) < 100
+
+
+def test_checkpoints_by_steps(scene, tmp_path):
+    seen = []
+
+    class Watch(Hook):
+        def before_checkpoint(self, trainer):
+            seen.append(trainer.step_count)
+
+    trainer = Trainer(scene, tiny_cfg(steps=7), tmp_path / "run")
+    trainer.run([Watch(), Checkpointer(every_s=0, every_steps=3)])
+    assert seen == [3, 6, 7]  # every 3 steps, then the end
+    assert read_progress(tmp_path / "run")["finished"]
+
+
+def test_scheduled_eval_takes_points_and_stops(scene, tmp_path):
+    from fastenerf.evaluate import make_eval_set
+
+    ev = make_eval_set(scene, 2, 0.25)
+    points = []
+    trainer = Trainer(scene, tiny_cfg(steps=1000), tmp_path / "run")
+    sched = ScheduledEval(ev, [1e-9, 2e-9], points.append)
+    summary = trainer.run([sched])
+    assert [p["target_s"] for p in points] == [1e-9, 2e-9] or len(points) == 1
+    assert sched.finished and summary["steps"] <= 2 and summary["interrupted"]
+    assert all(p["psnr"] > 0 and p["step"] >= 1 for p in points)
+    prog = json.loads((tmp_path / "run" / "progress.json").read_text())
+    assert prog["step"] == summary["steps"]
