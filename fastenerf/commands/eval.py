@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
     )
     print(format_metrics(m))
-    print(f"wrote {args.run_dir}/metrics.json, images in {m['images']}/, sheet {m['sheet']}")
+    print(f"wrote {m['images']}/metrics.json, images in {m['images']}/, sheet {m['sheet']}")
     return 0
 
 
