@@ -12,7 +12,6 @@ linear intensity is `c ** 2.2`, DESIGN §9).
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -259,13 +258,9 @@ class SceneConfig:
             path = path / "scene.json"
         if not path.is_file():
             raise InputError(f"{path}: no scene.json here (is this a scene folder?)")
-        try:
-            d = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise InputError(f"{path}: not valid JSON ({e})") from None
-        if not isinstance(d, dict):
-            raise InputError(f"{path}: top level must be an object")
-        return cls.from_dict(d, str(path))
+        from .io import read_json_object
+
+        return cls.from_dict(read_json_object(path), str(path))
 
     def save(self, path: str | Path) -> Path:
         from .io import write_json

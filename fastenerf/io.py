@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from .errors import InputError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
@@ -69,6 +71,18 @@ def write_json(path: str | os.PathLike, obj: Any) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
     return Path(path)
+
+
+def read_json_object(path: str | os.PathLike) -> dict:
+    """The JSON object in the file `path`, or a one-line InputError naming the file."""
+    path = Path(path)
+    try:
+        d = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise InputError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(d, dict):
+        raise InputError(f"{path}: top level must be an object")
+    return d
 
 
 def savez(path: str | os.PathLike, compressed: bool = False, **arrays: np.ndarray) -> Path:

@@ -27,7 +27,7 @@ from .data.formats import load_scene_folder
 from .data.formats.native import Scene
 from .errors import InputError
 from .fields import Field, field_from_config
-from .io import atomic_path, write_json
+from .io import atomic_path, read_json_object, write_json
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
@@ -78,13 +78,7 @@ def read_json_file(path: Path, what: str) -> dict:
     """A JSON object from `path`, or a one-line InputError naming the file."""
     if not path.is_file():
         raise InputError(f"{path.parent}: not a {what} (no {path.name})")
-    try:
-        d = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise InputError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(d, dict):
-        raise InputError(f"{path}: top level must be an object")
-    return d
+    return read_json_object(path)
 
 
 def read_run_config(run_dir: str | Path) -> dict:
