@@ -48,6 +48,7 @@ from benchmarks.curve import (
     DEFAULT_BUDGETS,
     DEFAULT_SCHEDULES,
     SCHEDULES,
+    load_scene_dir,
     make_config,
     schedule,
     train_curve,
@@ -419,16 +420,6 @@ def parse_sets(items: list[str], backends: list[str]) -> dict[str, dict[str, dic
         for b in [who] if who else backends:
             out[b]["train" if key in fields else "backend_options"][key] = val
     return out
-
-
-def load_scene_dir(path: str | Path):
-    from fastenerf.data.formats import load_any
-    from fastenerf.data.formats.native import Scene
-
-    scene = load_any(path)
-    if not isinstance(scene, Scene):
-        raise InputError(f"{path}: not a scene folder")
-    return scene
 
 
 def scene_labels(dirs: list[str]) -> list[str]:

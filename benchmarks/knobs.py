@@ -33,8 +33,8 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.cli import benchmark_main
-from benchmarks.curve import make_config, read_curve, train_curve
-from benchmarks.error_vs_time import collect, load_scene_dir, parse_sets
+from benchmarks.curve import load_scene_dir, make_config, read_curve, train_curve
+from benchmarks.error_vs_time import collect, parse_sets
 from benchmarks.session import finite, jsonable, session_info
 from fastenerf.errors import InputError
 from fastenerf.evaluate import make_eval_set

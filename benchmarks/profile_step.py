@@ -29,8 +29,7 @@ from typing import Any
 import torch
 
 from benchmarks.cli import benchmark_main
-from benchmarks.curve import make_config
-from benchmarks.error_vs_time import load_scene_dir
+from benchmarks.curve import load_scene_dir, make_config
 from benchmarks.session import jsonable, session_info
 from fastenerf.backends import BACKEND_NAMES
 from fastenerf.errors import InputError
