@@ -298,6 +298,8 @@ def data_parallel_trainer(
         if not dist.is_initialized():
             print("--data-parallel outside torchrun (one rank): training as usual")
             return trainer, default_hooks(trainer, progress)
+        # the ranks agree on skipping a step through the all-reduce, on the host
+        trainer.set_step_mode("plain")
         sync = make_data_parallel(trainer, world)
     except BaseException:
         if scratch is not None:

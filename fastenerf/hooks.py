@@ -19,6 +19,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import torch
+
 from .evaluate import EvalSet, evaluate_field, make_eval_set
 from .progress import progress_bar
 from .run import METRICS_LOG
@@ -94,7 +96,7 @@ class ScheduledEval(Hook):
         self._reset()
 
     def _reset(self) -> None:
-        self.acc = {"loss": 0.0, "n": 0, "samples": 0.0, "step_s": 0.0, "steps": 0}
+        self.acc: list[dict] = []  # the steps' stats since the last point
         self.clock = None
 
     def on_start(self, trainer: Trainer) -> None:
@@ -104,29 +106,28 @@ class ScheduledEval(Hook):
             trainer.request_stop()
 
     def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
-        a = self.acc
-        if math.isfinite(stats["loss"]):
-            a["loss"] += stats["loss"]
-            a["n"] += 1
-        a["samples"] += stats.get("samples_per_ray", float("nan")) * trainer.rays_per_step_total
-        a["steps"] += 1
+        self.acc.append(stats)  # values may still be on the device until the point
         train_s = trainer.train_seconds
         if not self.pending or train_s < self.pending[0]:
             return
         target = self.pending.pop(0)
         while self.pending and train_s >= self.pending[0]:  # one long step passed several
             target = self.pending.pop(0)
+        trainer.flush_stats()
         te = time.perf_counter()
         metrics = evaluate_now(trainer, self.ev)
+        losses = [s["loss"] for s in self.acc if math.isfinite(s["loss"])]
+        n_rays = trainer.rays_per_step_total
+        samples = [s.get("samples_per_ray", float("nan")) * n_rays for s in self.acc]
         point = {
             "target_s": target,
             "train_s": train_s,
             "step": trainer.step_count,
             **{k: v for k, v in metrics.items() if k != "render_seconds_per_view"},
             "eval_s": time.perf_counter() - te,
-            "loss": a["loss"] / a["n"] if a["n"] else float("nan"),
-            "samples_per_step": a["samples"] / max(a["steps"], 1),
-            "step_ms": 1e3 * (train_s - self.clock) / max(a["steps"], 1),
+            "loss": sum(losses) / len(losses) if losses else float("nan"),
+            "samples_per_step": sum(samples) / max(len(samples), 1),
+            "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
         }
         stats["eval_psnr"] = metrics["psnr"]
         self._reset()
@@ -152,17 +153,28 @@ class MetricsLog(Hook):
 
     def on_start(self, trainer: Trainer) -> None:
         self.file = open(Path(trainer.out_dir) / METRICS_LOG, "a")  # noqa: SIM115 - on_end
+        self.queue: list[dict] = []
         self.wall_start = time.perf_counter() - trainer.wall_seconds
 
     def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
         s = trainer.step_count
         if s % self.log_every == 0 or s <= 10 or "eval_psnr" in stats or trainer.done():
             stats["wall_s"] = time.perf_counter() - self.wall_start
-            self.file.write(json.dumps(stats) + "\n")
-            self.file.flush()
+            self.queue.append(stats)
+        if "eval_psnr" in stats or trainer.done():
+            trainer.flush_stats()
+        # a line is written once the trainer has brought its values to the host (the device
+        # path does every few steps), so logging costs no extra wait for the device
+        while self.queue and not any(torch.is_tensor(v) for v in self.queue[0].values()):
+            self.file.write(json.dumps(self.queue.pop(0)) + "\n")
+        self.file.flush()
 
     def on_end(self, trainer: Trainer, summary: dict[str, Any]) -> None:
         if self.file is not None:
+            trainer.flush_stats()
+            for stats in self.queue:
+                self.file.write(json.dumps(stats) + "\n")
+            self.queue = []
             self.file.close()
             self.file = None
 
@@ -192,6 +204,7 @@ class ProgressBar(Hook):
         if now - self.last < 0.25 and not trainer.done():
             return
         self.last = now
+        trainer.flush_stats()  # a few times a second: the loss shown is this step's
         n = trainer.step_count if self.by_steps else int(trainer.train_seconds)
         self.bar.n = min(self.total, n)
         post = {

@@ -25,6 +25,7 @@ from . import train_state
 from .config import TrainConfig
 from .data.events import EventIndex
 from .data.formats.native import Scene
+from .device_step import FiniteGuard, PendingStats, supports_device_guard
 from .errors import InputError
 from .fields import Field, make_field
 from .hooks import Hook, default_hooks
@@ -54,6 +55,9 @@ SAMPLER_PREFETCH = 16
 BATCH_MEMORY = {"vanilla": (192, 4096), "ngp": (256, 512)}
 # Training-camera poses the ngp occupancy grid is told about (space none sees stays empty).
 OBSERVED_VIEWS = 100
+# Device-paced steps: the stats come to the host every this many steps (one copy for all), so
+# the divergence guard learns of non-finite losses at most this late (its patience is larger).
+STATS_FLUSH_EVERY = 16
 
 
 class Trainer:
@@ -103,6 +107,9 @@ class Trainer:
         if checkpoint is not None:
             train_state.restore(self, checkpoint)
             train_state.trim_metrics(self.out_dir, self.step_count)
+        self.pending = PendingStats()
+        self.guard: FiniteGuard | None = None
+        self.set_step_mode(self.cfg.step_mode)
         self.write_config()
 
     # -- set-up ------------------------------------------------------------------------------
@@ -178,8 +185,30 @@ class Trainer:
             g.setdefault("lr", self.cfg.lr)
             g["lr_scale"] = g["lr"] / self.cfg.lr
         return torch.optim.Adam(
-            groups, lr=self.cfg.lr, betas=tuple(self.cfg.adam_betas), eps=self.cfg.adam_eps
+            groups,
+            lr=self.cfg.lr,
+            betas=tuple(self.cfg.adam_betas),
+            eps=self.cfg.adam_eps,
+            fused=self.device.type == "cuda" or self.cfg.step_mode == "device",
         )
+
+    def set_step_mode(self, mode: str) -> str:
+        """Choose the step: "plain" (host reads the loss each step), "device" (device-paced,
+        `fastenerf.device_step`) or "auto" (device on CUDA when the optimiser allows it).
+        Returns the mode in use; "device" falls back to plain without a fused torch Adam."""
+        self.flush_stats()
+        want = mode if mode != "auto" else ("device" if self.device.type == "cuda" else "plain")
+        if want == "device" and supports_device_guard(self.optimizer):
+            params = [p for g in self.optimizer.param_groups for p in g["params"]]
+            self.guard = FiniteGuard(params, self.device)
+            self._skipped_before_guard = self.skipped_steps
+            self.step_mode = "device"
+        else:
+            if self.guard is not None:
+                self.guard.disarm(self.optimizer)
+            self.guard = None
+            self.step_mode = "plain"
+        return self.step_mode
 
     def _make_self_calibration(self) -> SelfCalibration | None:
         if not SelfCalibration.wanted(self.cfg):
@@ -281,24 +310,63 @@ class Trainer:
             with record_function("sample_rays"):
                 batch = self.sampler.sample()
             out, loss, parts = self._forward(batch)
-            loss_value = float(loss.detach())
-            if math.isfinite(loss_value):
-                with record_function("backward"):
-                    loss.backward()
-                with record_function("optimizer"):
-                    self.optimizer.step()
-                    if self.selfcal is not None:
-                        self.selfcal.step()
-                self.nonfinite_run = 0
-            else:  # never let a non-finite loss reach the weights
-                self.skipped_steps += 1
-                self.nonfinite_run += 1
+            if self.guard is None:
+                loss_value = self._update_plain(loss)
+            else:
+                loss_value = self._update_on_device(loss)
             self.step_count += 1
             if self.sync_clock:
                 self.sync()
             dt = time.perf_counter() - t_begin
             self.train_seconds += dt
             return self._record(batch, out, parts, loss_value, lr, dt)
+
+    def _update_plain(self, loss: torch.Tensor) -> float:
+        """The host reads the loss; a non-finite one never reaches the weights."""
+        loss_value = float(loss.detach())
+        if math.isfinite(loss_value):
+            with record_function("backward"):
+                loss.backward()
+            with record_function("optimizer"):
+                self.optimizer.step()
+                if self.selfcal is not None:
+                    self.selfcal.step()
+            self.nonfinite_run = 0
+        else:
+            self.skipped_steps += 1
+            self.nonfinite_run += 1
+        return loss_value
+
+    def _update_on_device(self, loss: torch.Tensor) -> torch.Tensor:
+        """The same decision on the device: the fused Adam skips on a non-finite loss or
+        gradient; the host learns of it at the next `flush_stats`."""
+        with record_function("backward"):
+            loss.backward()
+        with record_function("optimizer"):
+            self.guard.check(loss, self.optimizer)
+            self.optimizer.step()
+            if self.selfcal is not None:
+                self.selfcal.step()
+        return loss.detach()
+
+    def flush_stats(self) -> list[dict]:
+        """Bring device-held stats to the host (one copy) and into `history`; update the
+        non-finite counters. A no-op on the plain path. Returns the flushed stats."""
+        if not getattr(self, "pending", None) or self.guard is None:
+            return []
+        done, (run, skipped) = self.pending.flush([self.guard.run, self.guard.skipped])
+        self.nonfinite_run = int(run)
+        self.skipped_steps = self._skipped_before_guard + int(skipped)
+        for st in done:
+            if self.skipped_steps:
+                st["skipped_steps"] = self.skipped_steps
+            self._append_history(st)
+        return done
+
+    def _append_history(self, stats: dict) -> None:
+        self.history.append(stats)
+        if len(self.history) > HISTORY_MAX:
+            del self.history[: HISTORY_MAX // 2]
 
     def _forward(self, batch):
         """Render the batch and compute the event loss; gradients zeroed for the backward."""
@@ -334,7 +402,11 @@ class Trainer:
                 self.selfcal.zero_grad()
         return out, loss, parts
 
-    def _record(self, batch, out, parts, loss_value: float, lr: float, dt: float) -> dict:
+    def _record(self, batch, out, parts, loss_value, lr: float, dt: float) -> dict:
+        """The step's stats; on the device path its tensor values stay tensors until the next
+        `flush_stats` (every STATS_FLUSH_EVERY steps, or when a hook asks)."""
+        on_device = self.guard is not None
+        host = (lambda v: v.detach().float()) if on_device else float
         n_rays = int(batch.rays_o.shape[0])
         stats = {
             "step": self.step_count,
@@ -342,18 +414,22 @@ class Trainer:
             "rays_per_s": n_rays / max(dt, 1e-9),
             "elapsed_s": self.train_seconds,
             "lr": lr,
-            "positive_fraction": float(batch.positive.float().mean()),
-            **{k: float(v) for k, v in parts.items()},
+            "positive_fraction": host(batch.positive.float().mean()),
+            **{k: host(v) for k, v in parts.items()},
         }
         if "n_samples" in out:
-            stats["samples_per_ray"] = int(out["n_samples"]) / n_rays
-        if self.skipped_steps:
-            stats["skipped_steps"] = self.skipped_steps
+            n = out["n_samples"]
+            stats["samples_per_ray"] = (host(n) if torch.is_tensor(n) else n) / n_rays
         if self.selfcal is not None:
             stats.update(self.selfcal.stats())
-        self.history.append(stats)
-        if len(self.history) > HISTORY_MAX:
-            del self.history[: HISTORY_MAX // 2]
+        if not on_device:
+            if self.skipped_steps:
+                stats["skipped_steps"] = self.skipped_steps
+            self._append_history(stats)
+            return stats
+        self.pending.add(stats)
+        if len(self.pending) >= STATS_FLUSH_EVERY:
+            self.flush_stats()
         return stats
 
     # -- the loop ----------------------------------------------------------------------------
@@ -396,6 +472,7 @@ class Trainer:
         # A second Ctrl-C (KeyboardInterrupt) propagates: the state may be torn mid-step, so
         # no checkpoint is written and the last one on disk stays valid.
         finally:
+            self.flush_stats()
             self.wall_seconds = time.perf_counter() - wall_start
             if self.selfcal is not None:  # config.json records the final estimates
                 self.write_config()
@@ -426,6 +503,7 @@ class Trainer:
         """
         for h in self._hooks:
             h.before_checkpoint(self)
+        self.flush_stats()
         path = self.out_dir / CHECKPOINT
         self.wait_for_checkpoint()
         with self.lock:

@@ -32,6 +32,7 @@ RESUMABLE_KEYS = {
     "minutes",
     "checkpoint_every_s",
     "checkpoint_every_steps",
+    "step_mode",
     "eval_every_s",
     "eval_views",
     "eval_scale",
