@@ -3,8 +3,10 @@
 `train_curve` trains through the one training loop (`Trainer.run`) with hooks: a scheduled
 evaluation on a fixed `EvalSet` (the one evaluation path, `fastenerf.evaluate`), a curve
 writer that saves curve.json before every checkpoint, stop on a signal or a deadline. The
-training clock is the trainer's own, synchronised with the device after every step
-(`Trainer.sync_clock`): set-up, evaluation and checkpoint writes are outside it. Before a
+training clock is the trainer's own, the device's time for the steps taken: synchronised
+after every step on the plain path (`Trainer.sync_clock`), and at every evaluation point on
+the device-paced one (`Trainer.settle_clock`); set-up, evaluation and checkpoint writes are
+outside it. Before a
 run's clock starts, a throwaway copy takes `warmup_steps` steps and one evaluation, so
 one-time costs (Warp kernel compilation, CUDA context, cuBLAS handles) are not charged to
 whichever run happens to come first.
@@ -213,7 +215,9 @@ def train_curve(
     if warmup_steps > 0 and not (deadline is not None and time.perf_counter() >= deadline):
         curve["last_warmup_s"] = warm_up(scene, cfg, ev, warmup_steps, run_dir.parent)
     trainer = Trainer(scene, cfg, run_dir, resume=has_ckpt)
-    trainer.sync_clock = True
+    # Device-paced steps are not synchronised one by one (that would idle the device while the
+    # host prepares the next): the clock is settled at every evaluation point instead.
+    trainer.sync_clock = trainer.step_mode == "plain"
     curve["train_config"] = trainer.cfg.to_dict()
     curve["session_started"] = len(curve["sessions"])
     curve["sessions"].append(session)

@@ -63,6 +63,10 @@ KERNEL_KINDS = (
 )
 
 
+# Steps watched with torch's sync debug mode after the profile (it warns at every host sync).
+SYNC_CHECK_STEPS = 32
+
+
 def kernel_kind(name: str) -> str:
     """The op a CUDA kernel belongs to (see KERNEL_KINDS), else "torch other"."""
     low = name.lower()
@@ -97,46 +101,74 @@ class ProfileSteps(Hook):
         self.wall: list[float] = []
         self.prof = None
         self.result: dict[str, Any] | None = None
-        self.bar = progress_bar(total=warmup + 2 * steps, desc="profile", enabled=progress)
+        self.bar = progress_bar(
+            total=warmup + 2 * steps + SYNC_CHECK_STEPS, desc="profile", enabled=progress
+        )
 
     def on_start(self, trainer) -> None:
-        trainer.sync_clock = True  # step times are the device's: the clock of error_vs_time
+        # step times are the device's (the clock of error_vs_time): a device-paced step is
+        # timed over a phase, settled at its ends, not synchronised one by one
+        trainer.sync_clock = trainer.step_mode == "plain"
         if self.warmup == 0:
             self._next(trainer)
 
     def after_step(self, trainer, stats: dict[str, Any]) -> None:
         self.bar.update(1)
         self.count += 1
-        if self.phase == "profiled":
-            self.wall.append(self._dt(trainer))
         limit = self.warmup if self.phase == "warmup" else self.steps
+        if self.phase == "syncs":
+            limit = SYNC_CHECK_STEPS
         if self.count >= limit:
             self._next(trainer)
 
-    def _dt(self, trainer) -> float:
-        now = trainer.train_seconds
-        dt, self._last = now - self._last, now
-        return dt
+    def _clock(self, trainer) -> float:
+        trainer.settle_clock()
+        return trainer.train_seconds
 
     def _next(self, trainer) -> None:
         self.count = 0
         if self.phase == "warmup":
             # the same steps without the profiler first: its per-op bookkeeping slows the host
-            self.phase, self.t_plain = "plain", trainer.train_seconds
+            self.phase, self.t_plain = "plain", self._clock(trainer)
         elif self.phase == "plain":
             from torch.profiler import ProfilerActivity, profile
 
-            self.plain_ms = 1e3 * (trainer.train_seconds - self.t_plain) / self.steps
+            self.plain_ms = 1e3 * (self._clock(trainer) - self.t_plain) / self.steps
             dev = trainer.device
             acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
             self.prof = profile(activities=acts)
             self.prof.__enter__()
-            self.phase, self._last = "profiled", trainer.train_seconds
-        else:
+            self.phase, self._last = "profiled", self._clock(trainer)
+        elif self.phase == "profiled":
+            self.wall = [(self._clock(trainer) - self._last) / self.steps] * self.steps
             self.prof.__exit__(None, None, None)
             self.result = breakdown(self.prof, trainer.device, self.wall, self.plain_ms)
+            self.phase = "syncs"
+            self._watch_syncs(trainer, True)
+        else:
+            self._watch_syncs(trainer, False)
             self.phase = "done"
             trainer.request_stop()
+
+    def _watch_syncs(self, trainer, on: bool) -> None:
+        """Count the host-device synchronisations of SYNC_CHECK_STEPS steps (CUDA only)."""
+        if trainer.device.type != "cuda":
+            return
+        import warnings
+
+        if on:
+            self._catch = warnings.catch_warnings(record=True)
+            self._seen = self._catch.__enter__()
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+            return
+        torch.cuda.set_sync_debug_mode("default")
+        self._catch.__exit__(None, None, None)
+        syncs = [
+            str(w.message).splitlines()[0] for w in self._seen if "synchroniz" in str(w.message)
+        ]
+        self.result["host_syncs_per_step"] = len(syncs) / SYNC_CHECK_STEPS
+        self.result["host_sync_examples"] = sorted(set(syncs))[:10]
 
     def on_end(self, trainer, summary: dict[str, Any]) -> None:
         self.bar.close()
@@ -216,6 +248,9 @@ def markdown(res: dict) -> str:
         tot = sum(res["device_ms"].values()) or 1.0
         for k, v in res["device_ms"].items():
             lines.append(f"| {k} | {v:.3f} | {100 * v / tot:.0f} % |")
+    if res.get("host_syncs_per_step") is not None:
+        where = ", ".join(res.get("host_sync_examples") or []) or "none"
+        lines += ["", f"Host syncs per step: {res['host_syncs_per_step']:.2f} (at {where})."]
     lines.append("")
     return "\n".join(lines)
 

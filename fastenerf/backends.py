@@ -52,6 +52,11 @@ class MarcherOptions:
     """Smallest marching step, world units. None: √3/1024 · box size."""
     max_samples: int = field(default=1024, metadata={"min": 1, "max": 65536})
     """Most samples along one ray."""
+    early_cone_angle: float | None = field(default=None, metadata={"min": 0.0, "max": 1.0})
+    """Cone angle of the first `early_steps` training steps, while the fog of a new field is
+    carved (fewer samples per ray then); None: cone_angle from the start."""
+    early_steps: int = field(default=0, metadata={"min": 0, "max": 10_000_000})
+    """Training steps that march with early_cone_angle."""
 
 
 @dataclass

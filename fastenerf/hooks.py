@@ -114,6 +114,8 @@ class ScheduledEval(Hook):
         while self.pending and train_s >= self.pending[0]:  # one long step passed several
             target = self.pending.pop(0)
         trainer.flush_stats()
+        trainer.settle_clock()  # the point's time includes the steps still queued
+        train_s = trainer.train_seconds
         te = time.perf_counter()
         metrics = evaluate_now(trainer, self.ev)
         losses = [s["loss"] for s in self.acc if math.isfinite(s["loss"])]

@@ -69,7 +69,8 @@ class Trainer:
     viewer thread may render between steps), history (recent stats dicts), step_count,
     train_seconds, eval_seconds, wall_seconds, failure (a one-line reason a run was stopped).
     `sync_clock`: synchronise the device before reading the training clock after each step
-    (benchmarks set it; the step time is then the device's, not the host's).
+    (the step time is then the device's, not the host's, at the cost of the device idling while
+    the host prepares the next step); `settle_clock()` does it once, e.g. before an evaluation.
     """
 
     def __init__(self, scene: Scene, cfg: TrainConfig, out_dir: str | Path, resume: bool = False):
@@ -289,6 +290,13 @@ class Trainer:
         """Wait for queued device work (Warp launches on the same stream included)."""
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
+
+    def settle_clock(self) -> None:
+        """Wait for the steps the device still has queued and charge the wait to the training
+        clock: after it, train_seconds is the device's time for every step taken so far."""
+        t = time.perf_counter()
+        self.sync()
+        self.train_seconds += time.perf_counter() - t
 
     def step(self) -> dict[str, Any]:
         """One optimisation step; returns stats (step, loss, rays_per_s, elapsed_s, lr, ...).

@@ -92,6 +92,8 @@ class NGPField(Field):
     backend = "ngp"
     # None, or (n_levels,) weights of the hash levels (coarse-to-fine pose refinement)
     level_weights: torch.Tensor | None = None
+    # the training step `update` last saw (the early cone applies before `early_steps`)
+    train_step: int = 0
 
     def __init__(
         self,
@@ -204,6 +206,9 @@ class NGPField(Field):
                 f"{tuple(rays_d.shape)} differ in shape"
             )
         opt = self.options.marcher
+        cone = opt.cone_angle
+        if train and opt.early_cone_angle is not None and self.train_step < opt.early_steps:
+            cone = opt.early_cone_angle
         rays_o = rays_o.float().contiguous()
         rays_d = rays_d.float().contiguous()
         with torch.no_grad(), record_function("march"):
@@ -214,7 +219,7 @@ class NGPField(Field):
                 self.aabb,
                 self.grid,
                 near=near,
-                cone_angle=opt.cone_angle,
+                cone_angle=cone,
                 dt_min=opt.dt_min,
                 max_samples=opt.max_samples,
                 jitter=jitter,
@@ -242,6 +247,7 @@ class NGPField(Field):
     # -- occupancy -----------------------------------------------------------------------
     def update(self, step: int) -> None:
         """Refresh the occupancy grid every `update_every` steps (instant-ngp's schedule)."""
+        self.train_step = step
         opt = self.options.occupancy
         if step % opt.update_every:
             return
