@@ -37,6 +37,9 @@ T_MIN = 1e-4
 # Every output buffer comes from here, so a test can hand out poisoned memory and check
 # that the kernels write every element.
 _empty = torch.empty
+# Per-sample outputs start at zero: samples outside every packed slice (the padding of
+# march_rays_fixed's buffers) get weight 0 and gradient 0. One memset, cheap next to the kernels.
+_zeros = torch.zeros
 
 
 @wp.func
@@ -191,7 +194,7 @@ class _Composite(torch.autograd.Function):
         t_ends = t_ends.detach().float().contiguous()
         packed_info = packed_info.contiguous()
         R, S, dev = packed_info.shape[0], sigmas.shape[0], sigmas.device
-        weights = _empty(S, dtype=torch.float32, device=dev)
+        weights = _zeros(S, dtype=torch.float32, device=dev)
         rgb = _empty(R, 3, dtype=torch.float32, device=dev)
         depth = _empty(R, dtype=torch.float32, device=dev)
         opacity = _empty(R, dtype=torch.float32, device=dev)
@@ -240,8 +243,8 @@ class _Composite(torch.autograd.Function):
         g_opacity = grad_or_zeros(g_opacity, opacity)
         has_gw = g_weights is not None
         g_weights = grad_or_zeros(g_weights, weights) if has_gw else weights  # unread if absent
-        grad_sigmas = _empty(S, dtype=torch.float32, device=dev)
-        grad_rgbs = _empty(S, 3, dtype=torch.float32, device=dev)
+        grad_sigmas = _zeros(S, dtype=torch.float32, device=dev)
+        grad_rgbs = _zeros(S, 3, dtype=torch.float32, device=dev)
         if R > 0:
             launch(
                 _composite_bwd_kernel(has_gw),
@@ -267,9 +270,6 @@ class _Composite(torch.autograd.Function):
                     fast_view(grad_rgbs, wp.vec3),
                 ],
             )
-        elif S > 0:
-            grad_sigmas.zero_()
-            grad_rgbs.zero_()
         return grad_sigmas, grad_rgbs, None, None, None, None
 
 
@@ -411,7 +411,7 @@ class _Distortion(torch.autograd.Function):
     def backward(ctx, g_loss):
         weights, t_starts, t_ends, packed_info, totals = ctx.saved_tensors
         R = packed_info.shape[0]
-        grad = _empty(weights.shape[0], dtype=torch.float32, device=weights.device)
+        grad = _zeros(weights.shape[0], dtype=torch.float32, device=weights.device)
         if R > 0:
             launch(
                 _distortion_bwd,
@@ -427,8 +427,6 @@ class _Distortion(torch.autograd.Function):
                     grad,
                 ],
             )
-        elif weights.shape[0] > 0:
-            grad.zero_()
         return grad, None, None, None
 
 
