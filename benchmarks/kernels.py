@@ -53,6 +53,14 @@ ROWS = [
         "max_abs_err_t_start",
     ),
     (
+        "march, fixed capacity",
+        "march_composite",
+        "warp_march_fixed_ms",
+        "torch_march_ms",
+        None,
+        None,
+    ),
+    (
         "march+field+composite",
         "march_composite",
         "warp_pipeline_ms",

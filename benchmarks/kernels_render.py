@@ -11,6 +11,10 @@ Plain-PyTorch baselines:
   - marching: dense uniform steps over every ray's box interval, occupancy lookup of each
     midpoint in the dense bool grid, compaction with boolean masks (the same intervals as the
     Warp marcher with cone_angle = 0 and no jitter, so sample counts must agree).
+
+`march_rays_fixed` (fixed-capacity buffers, no host sync) is timed beside `march_rays` with
+25 % spare capacity: eagerly, and on CUDA also replayed from a CUDA graph, with a check that a
+call makes no host sync (torch's sync debug mode) and that its samples are march_rays' own.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ from benchmarks.timing import copy_bandwidth_gbs, time_ms
 from fastenerf.kernels.composite import T_MIN, composite
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays
+from fastenerf.kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
 
 
 def _time_ms(fn, device: str, repeats: int, warmup: int = 3, inner: int = 1) -> float:
@@ -193,8 +198,10 @@ def bench_march_composite(
         "occupied_fraction": binary.float().mean().item(),
     }
 
+    margs = (o, d, aabb, grid, 0.0, None, 0.0, dt, dt, max_samples, None)
+
     def wmarch():
-        return march_rays(o, d, aabb, grid, 0.0, None, 0.0, dt, dt, max_samples, None)
+        return march_rays(*margs)
 
     def tmarch():
         return torch_march(o, d, aabb, binary, dt, max_samples)
@@ -221,9 +228,12 @@ def bench_march_composite(
         lambda: pipeline(tmarch, torch_composite), device, max(2, repeats // 2), warmup=1
     )
     r["speedup_pipeline"] = r["torch_pipeline_ms"] / r["warp_pipeline_ms"]
+    pw = wmarch()
+    r.update(_bench_march_fixed(margs, pw, field, device, repeats))
+    r["speedup_march_fixed"] = r["torch_march_ms"] / r["warp_march_fixed_ms"]
+    r["speedup_pipeline_fixed"] = r["torch_pipeline_ms"] / r["warp_pipeline_fixed_ms"]
 
     # sample sets vs the float64 dense reference (same intervals: counts must agree)
-    pw = wmarch()
     p64 = torch_march(o.double(), d.double(), aabb, binary, dt, max_samples)
     S = int(pw[0][:, 1].sum())
     r["n_samples"] = S
@@ -248,6 +258,65 @@ def bench_march_composite(
     march_bytes = 12 * S + n_rays * (2 * 24 + 4 + 8)
     r["march_GBps"] = march_bytes / r["warp_march_ms"] * 1e-6
     r["copy_GBps"] = copy_bandwidth_gbs(device)
+    return r
+
+
+def _bench_march_fixed(margs, exact, field, device, repeats) -> dict:
+    """march_rays_fixed on march_rays' arguments `margs` with 25 % spare capacity: eager and
+    CUDA-graph timings, host-sync check, equality with march_rays' output `exact`."""
+    S = int(exact[0][:, 1].sum())
+    capacity = S + S // 4 + 1
+    buf = empty_fixed_samples(margs[0].shape[0], capacity, margs[0].device)
+
+    def fixed():
+        return march_rays_fixed(*margs, capacity=capacity, out=buf)
+
+    def pipeline():  # the field runs on every slot, padding included
+        packed, t_s, t_e, ri = fixed()[:4]
+        sig, rgb = field(packed, t_s, t_e, ri)
+        sig.requires_grad_(True)
+        rgb.requires_grad_(True)
+        out = composite(sig, rgb, t_s, t_e, packed)
+        torch.autograd.grad(out["rgb"].sum(), (sig, rgb))
+
+    r = {"fixed_capacity": capacity}
+    r["warp_march_fixed_ms"] = _time_ms(fixed, device, repeats)
+    r["warp_pipeline_fixed_ms"] = _time_ms(pipeline, device, repeats)
+    f = fixed()
+    r["march_fixed_matches_march_rays"] = bool(
+        int(f.n_used) == S
+        and int(f.n_wanted) == S
+        and not bool(f.overflow.any())
+        and torch.equal(f.packed_info, exact[0])
+        and torch.equal(f.t_starts[:S], exact[1])
+        and torch.equal(f.ray_indices[:S], exact[3])
+    )
+    if not str(device).startswith("cuda"):
+        return r
+    try:
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")  # raises on any host sync inside the call
+        fixed()
+        r["march_fixed_host_sync"] = "none"
+    except RuntimeError as e:
+        r["march_fixed_host_sync"] = str(e).splitlines()[0]
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    try:
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            fixed()  # warm-up on a side stream before capture, as torch asks
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            fixed()
+        r["warp_march_fixed_graph_ms"] = _time_ms(graph.replay, device, repeats)
+        graph.replay()
+        torch.cuda.synchronize()
+        r["march_fixed_graph_matches"] = bool(torch.equal(buf.t_starts[:S], exact[1]))
+    except Exception as e:  # report, do not hide the other timings
+        r["march_fixed_graph_error"] = f"{type(e).__name__}: {e}".splitlines()[0]
     return r
 
 

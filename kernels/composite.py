@@ -37,6 +37,9 @@ T_MIN = 1e-4
 # Every output buffer comes from here, so a test can hand out poisoned memory and check
 # that the kernels write every element.
 _empty = torch.empty
+# Per-sample outputs start at zero: samples outside every packed slice (the padding of
+# march_rays_fixed's buffers) get weight 0 and gradient 0. One memset, cheap next to the kernels.
+_zeros = torch.zeros
 
 
 @wp.func
@@ -72,7 +75,8 @@ def _composite_fwd(
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
     packed_info: wp.array(dtype=wp.vec2i),
-    bg: wp.vec3,
+    bg: wp.array(dtype=wp.vec3),
+    bg_stride: int,
     t_min: float,
     weights: wp.array(dtype=float),
     out_rgb: wp.array(dtype=wp.vec3),
@@ -80,6 +84,8 @@ def _composite_fwd(
     out_opacity: wp.array(dtype=float),
     n_used: wp.array(dtype=wp.int32),
 ):
+    """One thread per ray; `weights` arrives zeroed, so the walk stops at the first sample
+    whose outgoing transmittance is below t_min (the rest keep weight 0 unread)."""
     r = wp.tid()
     start = packed_info[r][0]
     n = packed_info[r][1]
@@ -88,28 +94,31 @@ def _composite_fwd(
     d = wp.float32(0.0)
     o = wp.float32(0.0)
     used = wp.int32(0)
-    for i in range(n):
-        s = start + i
-        if T >= t_min:
-            tau = optical_depth(sigmas[s], t_starts[s], t_ends[s])
+    if T >= t_min:  # t_min > 1 stops every ray at once
+        for i in range(n):
+            s = start + i
+            t0 = t_starts[s]
+            t1 = t_ends[s]
+            tau = optical_depth(sigmas[s], t0, t1)
             w = T * one_minus_exp_neg(tau)
             weights[s] = w
             c += w * rgbs[s]
-            d += w * 0.5 * (t_starts[s] + t_ends[s])
+            d += w * 0.5 * (t0 + t1)
             o += w
             T = T * wp.exp(-tau)
             used = i + 1
-        else:
-            weights[s] = 0.0
-    out_rgb[r] = c + (1.0 - o) * bg
+            if not (T >= t_min):  # NaN stops too: the ray is NaN from here on anyway
+                break
+    out_rgb[r] = c + (1.0 - o) * bg[r * bg_stride]
     out_depth[r] = d
     out_opacity[r] = o
     n_used[r] = used
 
 
 @functools.cache
-def _composite_bwd_kernel(has_grad_weights: bool):
-    """Backward kernel; the weights' own gradient term is compiled in only when needed."""
+def _composite_bwd_kernel(has_rgb: bool, has_depth: bool, has_opacity: bool, has_weights: bool):
+    """Backward kernel; only the gradient terms of outputs that received one are compiled in
+    (an absent gradient is zero: no buffer of zeros is made or read)."""
 
     @wp.kernel(module="unique")
     def composite_bwd(
@@ -118,7 +127,8 @@ def _composite_bwd_kernel(has_grad_weights: bool):
         t_starts: wp.array(dtype=float),
         t_ends: wp.array(dtype=float),
         packed_info: wp.array(dtype=wp.vec2i),
-        bg: wp.vec3,
+        bg: wp.array(dtype=wp.vec3),
+        bg_stride: int,
         n_used: wp.array(dtype=wp.int32),
         weights: wp.array(dtype=float),
         out_rgb: wp.array(dtype=wp.vec3),
@@ -131,45 +141,69 @@ def _composite_bwd_kernel(has_grad_weights: bool):
         grad_sigmas: wp.array(dtype=float),
         grad_rgbs: wp.array(dtype=wp.vec3),
     ):
+        """Gradients arrive zeroed: only the `used` samples (weight possibly > 0) are
+        visited."""
         r = wp.tid()
         start = packed_info[r][0]
-        n = packed_info[r][1]
         used = n_used[r]
-        gc = g_rgb[r]
-        gd = g_depth[r]
-        go = g_opacity[r]
+        b = bg[r * bg_stride]
+        gc = wp.vec3(0.0)
+        gd = wp.float32(0.0)
+        go = wp.float32(0.0)
         # Total sum_j e_j w_j from the forward outputs: out_rgb - bg = sum w c - opacity * bg.
-        total = wp.dot(gc, out_rgb[r] - bg) + gd * out_depth[r] + go * out_opacity[r]
-        if wp.static(has_grad_weights):
+        total = wp.float32(0.0)
+        if wp.static(has_rgb):
+            gc = g_rgb[r]
+            total += wp.dot(gc, out_rgb[r] - b)
+        if wp.static(has_depth):
+            gd = g_depth[r]
+            total += gd * out_depth[r]
+        if wp.static(has_opacity):
+            go = g_opacity[r]
+            total += go * out_opacity[r]
+        if wp.static(has_weights):
             for i in range(used):
                 total += g_weights[start + i] * weights[start + i]
         T = wp.float32(1.0)
         prefix = wp.float32(0.0)
-        for i in range(n):
+        for i in range(used):
             s = start + i
-            if i < used:
-                tau = optical_depth(sigmas[s], t_starts[s], t_ends[s])
-                w = T * one_minus_exp_neg(tau)  # recomputed: cheaper than reading it back
-                e = wp.dot(gc, rgbs[s] - bg) + gd * 0.5 * (t_starts[s] + t_ends[s]) + go
-                if wp.static(has_grad_weights):
-                    e += g_weights[s]
-                T = T * wp.exp(-tau)
-                prefix += e * w
-                delta = wp.max(t_ends[s] - t_starts[s], 0.0)
-                grad_sigmas[s] = delta * (e * T - (total - prefix))
+            t0 = t_starts[s]
+            t1 = t_ends[s]
+            tau = optical_depth(sigmas[s], t0, t1)
+            w = T * one_minus_exp_neg(tau)  # recomputed: cheaper than reading it back
+            e = go
+            if wp.static(has_rgb):
+                e += wp.dot(gc, rgbs[s] - b)
                 grad_rgbs[s] = w * gc
-            else:
-                grad_sigmas[s] = 0.0
-                grad_rgbs[s] = wp.vec3(0.0)
+            if wp.static(has_depth):
+                e += gd * 0.5 * (t0 + t1)
+            if wp.static(has_weights):
+                e += g_weights[s]
+            T = T * wp.exp(-tau)
+            prefix += e * w
+            delta = wp.max(t1 - t0, 0.0)
+            grad_sigmas[s] = delta * (e * T - (total - prefix))
 
     return composite_bwd
 
 
-def _bg_vec(background: torch.Tensor | None) -> wp.vec3:
+@functools.cache
+def _zero_bg(dev: torch.device) -> torch.Tensor:
+    return torch.zeros(1, 3, dtype=torch.float32, device=dev)
+
+
+def _bg_array(background: torch.Tensor | None, R: int, dev: torch.device) -> torch.Tensor:
+    """Background as a (1, 3) or (R, 3) float32 tensor on `dev`; read by the kernels on the
+    device (reading it on the host would sync every call)."""
     if background is None:
-        return wp.vec3(0.0, 0.0, 0.0)
-    b = [float(v) for v in background.detach().reshape(3).cpu()]
-    return wp.vec3(b[0], b[1], b[2])
+        return _zero_bg(torch.device(dev))
+    bg = background.detach()
+    if bg.numel() == 3:
+        bg = bg.reshape(1, 3)
+    elif bg.shape != (R, 3):
+        raise ValueError(f"background must be (3,) or ({R}, 3), got {tuple(bg.shape)}")
+    return bg.to(device=dev, dtype=torch.float32).contiguous()
 
 
 def _check_packed(sigmas, t_starts, t_ends, packed_info) -> None:
@@ -178,6 +212,10 @@ def _check_packed(sigmas, t_starts, t_ends, packed_info) -> None:
         raise ValueError(f"t_starts/t_ends must be ({S},), got {tuple(t_starts.shape)}")
     if packed_info.dtype != torch.int32 or packed_info.ndim != 2 or packed_info.shape[1] != 2:
         raise ValueError("packed_info must be (R, 2) int32")
+
+
+def _grad(g: torch.Tensor | None, dummy: torch.Tensor) -> torch.Tensor:
+    return dummy if g is None else g.detach().float().contiguous()
 
 
 class _Composite(torch.autograd.Function):
@@ -191,60 +229,49 @@ class _Composite(torch.autograd.Function):
         t_ends = t_ends.detach().float().contiguous()
         packed_info = packed_info.contiguous()
         R, S, dev = packed_info.shape[0], sigmas.shape[0], sigmas.device
-        weights = _empty(S, dtype=torch.float32, device=dev)
+        bg = _bg_array(background, R, dev)
+        weights = _zeros(S, dtype=torch.float32, device=dev)
         rgb = _empty(R, 3, dtype=torch.float32, device=dev)
         depth = _empty(R, dtype=torch.float32, device=dev)
         opacity = _empty(R, dtype=torch.float32, device=dev)
         n_used = _empty(R, dtype=torch.int32, device=dev)
-        bg = _bg_vec(background)
-        if R > 0:
-            launch(
-                _composite_fwd,
-                R,
+        launch(
+            _composite_fwd,
+            R,
+            sigmas,
+            [
                 sigmas,
-                [
-                    sigmas,
-                    fast_view(rgbs, wp.vec3),
-                    t_starts,
-                    t_ends,
-                    fast_view(packed_info, wp.vec2i),
-                    bg,
-                    T_MIN,
-                    weights,
-                    fast_view(rgb, wp.vec3),
-                    depth,
-                    opacity,
-                    n_used,
-                ],
-            )
-        ctx.bg = bg
+                fast_view(rgbs, wp.vec3),
+                t_starts,
+                t_ends,
+                fast_view(packed_info, wp.vec2i),
+                fast_view(bg, wp.vec3),
+                int(bg.shape[0] > 1),
+                T_MIN,
+                weights,
+                fast_view(rgb, wp.vec3),
+                depth,
+                opacity,
+                n_used,
+            ],
+        )
         ctx.save_for_backward(
-            sigmas, rgbs, t_starts, t_ends, packed_info, n_used, weights, rgb, depth, opacity
+            sigmas, rgbs, t_starts, t_ends, packed_info, bg, n_used, weights, rgb, depth, opacity
         )
         return rgb, depth, opacity, weights
 
     @staticmethod
     def backward(ctx, g_rgb, g_depth, g_opacity, g_weights):
-        sigmas, rgbs, t_starts, t_ends, packed_info, n_used, weights, rgb, depth, opacity = (
+        sigmas, rgbs, t_starts, t_ends, packed_info, bg, n_used, weights, rgb, depth, opacity = (
             ctx.saved_tensors
         )
         R, S, dev = packed_info.shape[0], sigmas.shape[0], sigmas.device
-
-        def grad_or_zeros(g, like):
-            if g is None:
-                return torch.zeros_like(like)
-            return g.detach().float().contiguous()
-
-        g_rgb = grad_or_zeros(g_rgb, rgb)
-        g_depth = grad_or_zeros(g_depth, depth)
-        g_opacity = grad_or_zeros(g_opacity, opacity)
-        has_gw = g_weights is not None
-        g_weights = grad_or_zeros(g_weights, weights) if has_gw else weights  # unread if absent
-        grad_sigmas = _empty(S, dtype=torch.float32, device=dev)
-        grad_rgbs = _empty(S, 3, dtype=torch.float32, device=dev)
-        if R > 0:
+        grad_sigmas = _zeros(S, dtype=torch.float32, device=dev)
+        grad_rgbs = _zeros(S, 3, dtype=torch.float32, device=dev)
+        flags = tuple(g is not None for g in (g_rgb, g_depth, g_opacity, g_weights))
+        if any(flags):
             launch(
-                _composite_bwd_kernel(has_gw),
+                _composite_bwd_kernel(*flags),
                 R,
                 sigmas,
                 [
@@ -253,23 +280,21 @@ class _Composite(torch.autograd.Function):
                     t_starts,
                     t_ends,
                     fast_view(packed_info, wp.vec2i),
-                    ctx.bg,
+                    fast_view(bg, wp.vec3),
+                    int(bg.shape[0] > 1),
                     n_used,
                     weights,
                     fast_view(rgb, wp.vec3),
                     depth,
                     opacity,
-                    fast_view(g_rgb, wp.vec3),
-                    g_depth,
-                    g_opacity,
-                    g_weights,
+                    fast_view(_grad(g_rgb, rgb), wp.vec3),
+                    _grad(g_depth, depth),
+                    _grad(g_opacity, opacity),
+                    _grad(g_weights, weights),
                     grad_sigmas,
                     fast_view(grad_rgbs, wp.vec3),
                 ],
             )
-        elif S > 0:
-            grad_sigmas.zero_()
-            grad_rgbs.zero_()
         return grad_sigmas, grad_rgbs, None, None, None, None
 
 
@@ -292,7 +317,9 @@ def composite(
         packed_info: (R, 2) int32 (first sample, sample count) of each ray.
         ray_indices: (S,) int32 owner ray of each sample; not read (packed_info says it all),
             accepted for symmetry with the marcher's outputs.
-        background: (3,) colour composited behind every ray, or None (black, i.e. nothing).
+        background: (3,) colour composited behind every ray, or (R, 3) one per ray, or None
+            (black, i.e. nothing); best on the rays' device (a CPU tensor is copied over,
+            which waits for the GPU). Not differentiated.
 
     Returns:
         dict with rgb (R, 3), depth (R,) un-normalised sum of w * t_mid in world units,
@@ -411,7 +438,7 @@ class _Distortion(torch.autograd.Function):
     def backward(ctx, g_loss):
         weights, t_starts, t_ends, packed_info, totals = ctx.saved_tensors
         R = packed_info.shape[0]
-        grad = _empty(weights.shape[0], dtype=torch.float32, device=weights.device)
+        grad = _zeros(weights.shape[0], dtype=torch.float32, device=weights.device)
         if R > 0:
             launch(
                 _distortion_bwd,
@@ -427,8 +454,6 @@ class _Distortion(torch.autograd.Function):
                     grad,
                 ],
             )
-        elif weights.shape[0] > 0:
-            grad.zero_()
         return grad, None, None, None
 
 

@@ -23,13 +23,15 @@ Two passes run the same compiled kernel (so they agree bit for bit): count, excl
 (torch.cumsum), write. A pass may split each ray's lattice over several threads (`segments`),
 which changes nothing in the output; the max_samples cap keeps each ray's nearest samples.
 Jumps in empty space go cell by cell at the cascade of the sample (no mip from dt, unlike
-instant-ngp). No gradients: sample positions are not differentiated.
+instant-ngp). No gradients: sample positions are not differentiated. `march_rays_fixed`
+(raymarch_fixed.py) runs the same passes into fixed-size buffers with no host sync.
 """
 
 from __future__ import annotations
 
 import functools
 import math
+from typing import NamedTuple
 
 import torch
 import warp as wp
@@ -381,6 +383,114 @@ def step_rule(cone_angle: float, dt_min: float, dt_max: float) -> StepRule:
     return rule
 
 
+class MarchPlan(NamedTuple):
+    """A march's compiled kernel, its leading launch arguments and its sizes."""
+
+    kernel: object
+    head: list
+    R: int
+    n_seg: int
+    max_samples: int
+    like: torch.Tensor
+
+
+def plan_march(
+    rays_o, rays_d, aabb, grid, near, far, cone_angle, dt_min, dt_max, max_samples, jitter, segments
+) -> MarchPlan:
+    """Checks the arguments and gathers what both passes of a march launch with (no sync)."""
+    init()
+    box = _box_of(aabb)
+    if grid is not None:
+        outer = grid.outer_aabb()
+        box = [max(box[i], outer[i]) for i in range(3)] + [min(box[i], outer[i]) for i in (3, 4, 5)]
+    if dt_min is None:
+        dt_min = grid.step_size if grid is not None else default_step_size(box)
+    if dt_max is None:
+        if grid is not None:
+            a = grid.aabb_list
+            edge = max(a[3] - a[0], a[4] - a[1], a[5] - a[2]) * 2 ** (grid.n_cascades - 1)
+            edge /= grid.resolution
+        else:
+            edge = max(box[3] - box[0], box[4] - box[1], box[5] - box[2]) / 128
+        dt_max = max(dt_min, math.sqrt(3.0) * edge)
+    rule = step_rule(float(cone_angle), float(dt_min), float(dt_max))
+    if max_samples < 0:
+        raise ValueError(f"max_samples must be >= 0, got {max_samples}")
+    rays_o = rays_o.float().contiguous()
+    rays_d = rays_d.float().contiguous()
+    R, dev = rays_o.shape[0], rays_o.device
+    if jitter is not None:
+        jitter = jitter.to(device=dev, dtype=torch.float32).contiguous()
+        if jitter.shape != (R,):
+            raise ValueError(f"jitter must be ({R},), got {tuple(jitter.shape)}")
+    if grid is not None:
+        kernel = _march_kernel(grid.n_cascades, grid.cylinder is not None)
+        geom = [grid.center, grid.half, grid.inv_half, grid.resolution, grid.bitfield]
+        cyl = wp.vec3(*grid.cylinder) if grid.cylinder is not None else wp.vec3(0.0)
+    else:
+        kernel = _march_kernel(0, False)
+        geom = [wp.vec3(0.0), wp.vec3(1.0), wp.vec3(1.0), 2, _dummy(dev, torch.uint8)]
+        cyl = wp.vec3(0.0)
+    if segments is None:
+        # Measured on an H100 (shell scene, 128^3): 4096 rays 1.35 -> 0.95 ms with 8 segments,
+        # 16384 rays 1.36 -> 1.13 ms with 2, 65536 rays slower with any split. The CPU backend
+        # runs threads one after another: no split.
+        segments = 1 if dev.type == "cpu" else max(1, min(8, 2**15 // max(R, 1)))
+    n_seg = int(segments)
+    if n_seg < 1:
+        raise ValueError(f"segments must be >= 1, got {segments}")
+    head = [
+        fast_view(rays_o, wp.vec3),
+        fast_view(rays_d, wp.vec3),
+        wp.vec3(*box[:3]),
+        wp.vec3(*box[3:]),
+        float(near),
+        1e30 if far is None else float(far),
+        rule,
+        *geom,
+        cyl,
+        jitter if jitter is not None else _dummy(dev, torch.float32),
+        int(jitter is not None),
+        int(max_samples),
+        n_seg,
+    ]
+    return MarchPlan(kernel, head, R, n_seg, int(max_samples), rays_o)
+
+
+@functools.cache
+def _dummy_cached(dev: torch.device, dtype: torch.dtype, width: int) -> torch.Tensor:
+    return torch.zeros((1,) if width == 1 else (1, width), dtype=dtype, device=dev)
+
+
+def _dummy(dev: torch.device, dtype: torch.dtype, width: int = 1) -> torch.Tensor:
+    """A placeholder for an unread kernel argument, (1,) or (1, width) (cached: no per-call
+    allocation, which also keeps the launch graph-capturable)."""
+    return _dummy_cached(torch.device(dev), dtype, width)
+
+
+def count_samples(p: MarchPlan) -> torch.Tensor:
+    """Samples of each (ray, segment), (R * n_seg,) int32, the per-ray cap applied."""
+    dev = p.like.device
+    counts = _empty(p.R * p.n_seg, dtype=torch.int32, device=dev)
+    f0, i0 = _dummy(dev, torch.float32), _dummy(dev, torch.int32)
+    si0 = _dummy(dev, torch.int32, 2)  # never read in the count pass
+    launch(
+        p.kernel, p.R * p.n_seg, p.like, [*p.head, 0, counts, fast_view(si0, wp.vec2i), f0, f0, i0]
+    )
+    if p.n_seg == 1:
+        return counts
+    # the cap keeps each ray's nearest samples: segment j gets what is left of it
+    incl = torch.cumsum(counts.view(p.R, p.n_seg), 1, dtype=torch.int32).clamp_(max=p.max_samples)
+    return torch.diff(incl, dim=1, prepend=torch.zeros_like(incl[:, :1])).view(-1)
+
+
+def write_samples(p: MarchPlan, seg_info, t_starts, t_ends, ray_indices) -> None:
+    """Writes segment j's samples at seg_info[j] = (first slot, count), (R * n_seg, 2) int32."""
+    counts = _dummy(p.like.device, torch.int32)
+    args = [*p.head, 1, counts, fast_view(seg_info, wp.vec2i), t_starts, t_ends, ray_indices]
+    launch(p.kernel, p.R * p.n_seg, p.like, args)
+
+
 def march_rays(
     rays_o: torch.Tensor,
     rays_d: torch.Tensor,
@@ -413,76 +523,24 @@ def march_rays(
             output does not depend on it). Default: 1 on CPU; on GPU 2^15 / R, in 1..8.
     Returns:
         packed_info (R, 2) int32, t_starts (S,), t_ends (S,) float32, ray_indices (S,) int32.
+        S is read back from the GPU (one host sync): `march_rays_fixed` avoids it.
     """
-    init()
-    box = _box_of(aabb)
-    if grid is not None:
-        outer = grid.outer_aabb()
-        box = [max(box[i], outer[i]) for i in range(3)] + [min(box[i], outer[i]) for i in (3, 4, 5)]
-    if dt_min is None:
-        dt_min = grid.step_size if grid is not None else default_step_size(box)
-    if dt_max is None:
-        if grid is not None:
-            a = grid.aabb_list
-            edge = max(a[3] - a[0], a[4] - a[1], a[5] - a[2]) * 2 ** (grid.n_cascades - 1)
-            edge /= grid.resolution
-        else:
-            edge = max(box[3] - box[0], box[4] - box[1], box[5] - box[2]) / 128
-        dt_max = max(dt_min, math.sqrt(3.0) * edge)
-    rule = step_rule(float(cone_angle), float(dt_min), float(dt_max))
-    if max_samples < 0:
-        raise ValueError(f"max_samples must be >= 0, got {max_samples}")
-    rays_o = rays_o.float().contiguous()
-    rays_d = rays_d.float().contiguous()
-    R, dev = rays_o.shape[0], rays_o.device
-    if jitter is not None:
-        jitter = jitter.to(device=dev, dtype=torch.float32).contiguous()
-        if jitter.shape != (R,):
-            raise ValueError(f"jitter must be ({R},), got {tuple(jitter.shape)}")
-    if grid is not None:
-        kernel = _march_kernel(grid.n_cascades, grid.cylinder is not None)
-        geom = [grid.center, grid.half, grid.inv_half, grid.resolution, grid.bitfield]
-        cyl = wp.vec3(*grid.cylinder) if grid.cylinder is not None else wp.vec3(0.0)
-    else:
-        kernel = _march_kernel(0, False)
-        dummy = torch.zeros(1, dtype=torch.uint8, device=dev)
-        geom = [wp.vec3(0.0), wp.vec3(1.0), wp.vec3(1.0), 2, dummy]
-        cyl = wp.vec3(0.0)
-    if segments is None:
-        # Measured on an H100 (shell scene, 128^3): 4096 rays 1.35 -> 0.95 ms with 8 segments,
-        # 16384 rays 1.36 -> 1.13 ms with 2, 65536 rays slower with any split. The CPU backend
-        # runs threads one after another: no split.
-        segments = 1 if dev.type == "cpu" else max(1, min(8, 2**15 // max(R, 1)))
-    n_seg = int(segments)
-    if n_seg < 1:
-        raise ValueError(f"segments must be >= 1, got {segments}")
-    jit = jitter if jitter is not None else torch.zeros(1, device=dev)
-    counts = _empty(R * n_seg, dtype=torch.int32, device=dev)
-    f0 = torch.zeros(0, device=dev)
-    i0 = torch.zeros(0, dtype=torch.int32, device=dev)
-    head = [
-        fast_view(rays_o, wp.vec3),
-        fast_view(rays_d, wp.vec3),
-        wp.vec3(*box[:3]),
-        wp.vec3(*box[3:]),
-        float(near),
-        1e30 if far is None else float(far),
-        rule,
-        *geom,
-        cyl,
-        jit,
-        int(jitter is not None),
-        int(max_samples),
-        n_seg,
-    ]
-    si0 = torch.zeros(0, 2, dtype=torch.int32, device=dev)
-    launch(kernel, R * n_seg, rays_o, [*head, 0, counts, fast_view(si0, wp.vec2i), f0, f0, i0])
-    if n_seg > 1:
-        # the cap keeps each ray's nearest samples: segment j gets what is left of it
-        incl = torch.cumsum(counts.view(R, n_seg), 1, dtype=torch.int32).clamp_(max=max_samples)
-        seg_counts = torch.diff(incl, dim=1, prepend=torch.zeros_like(incl[:, :1])).view(-1)
-    else:
-        seg_counts = counts
+    p = plan_march(
+        rays_o,
+        rays_d,
+        aabb,
+        grid,
+        near,
+        far,
+        cone_angle,
+        dt_min,
+        dt_max,
+        max_samples,
+        jitter,
+        segments,
+    )
+    R, n_seg, dev = p.R, p.n_seg, p.like.device
+    seg_counts = count_samples(p)
     csum = torch.cumsum(seg_counts, 0, dtype=torch.int32)
     seg_info = torch.stack([csum - seg_counts, seg_counts], 1).contiguous()
     per_ray = seg_counts.view(R, n_seg).sum(1, dtype=torch.int32)
@@ -492,10 +550,5 @@ def march_rays(
     t_ends = _empty(S, dtype=torch.float32, device=dev)
     ray_indices = _empty(S, dtype=torch.int32, device=dev)
     if S > 0:
-        launch(
-            kernel,
-            R * n_seg,
-            rays_o,
-            [*head, 1, counts, fast_view(seg_info, wp.vec2i), t_starts, t_ends, ray_indices],
-        )
+        write_samples(p, seg_info, t_starts, t_ends, ray_indices)
     return packed_info, t_starts, t_ends, ray_indices

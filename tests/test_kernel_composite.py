@@ -100,11 +100,14 @@ def _run_both(sig, rgbs, t_s, t_e, pi, bg, grad_keys):
         (True, ("rgb", "depth", "opacity", "weights")),
         (False, ("rgb",)),
         (False, ("depth", "opacity")),
+        ("per_ray", ("rgb", "weights")),
+        ("per_ray", ("opacity",)),
+        (True, ("weights",)),
     ],
 )
 def test_values_and_gradients_match_float64(with_bg, grad_keys):
     sig, rgbs, t_s, t_e, pi = _random_case()
-    bg = torch.rand(3) if with_bg else None
+    bg = torch.rand(pi.shape[0], 3) if with_bg == "per_ray" else torch.rand(3) if with_bg else None
     out, ref, (gs, gc), (rs, rc) = _run_both(sig, rgbs, t_s, t_e, pi, bg, grad_keys)
     for k in ("rgb", "depth", "opacity", "weights"):
         torch.testing.assert_close(out[k].double(), ref[k].detach(), rtol=1e-5, atol=2e-6)
@@ -285,3 +288,12 @@ def test_render_benchmarks_run_at_tiny_size():
     r = bench_march_composite("cpu", n_rays=64, resolution=16, repeats=1)
     assert r["n_samples"] > 0 and r["warp_march_ms"] > 0 and r["torch_march_ms"] > 0
     assert r["count_mismatch_fraction"] < 0.01 and r["max_abs_err_rgb"] < 1e-2
+    assert r["march_fixed_matches_march_rays"] and r["warp_march_fixed_ms"] > 0
+    assert r["warp_pipeline_fixed_ms"] > 0 and r["fixed_capacity"] > r["n_samples"]
+
+
+def test_background_shape_is_checked():
+    pi = _packed(torch.tensor([2, 1]))
+    x = torch.rand(3)
+    with pytest.raises(ValueError, match="background"):
+        composite(x, torch.rand(3, 3), x, x + 0.1, pi, background=torch.rand(3, 3))
