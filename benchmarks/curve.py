@@ -215,9 +215,7 @@ def train_curve(
     if warmup_steps > 0 and not (deadline is not None and time.perf_counter() >= deadline):
         curve["last_warmup_s"] = warm_up(scene, cfg, ev, warmup_steps, run_dir.parent)
     trainer = Trainer(scene, cfg, run_dir, resume=has_ckpt)
-    # Device-paced steps are not synchronised one by one (that would idle the device while the
-    # host prepares the next): the clock is settled at every evaluation point instead.
-    trainer.sync_clock = trainer.step_mode == "plain"
+    trainer.sync_clock = trainer.step_mode == "plain"  # device-paced: settled at each point
     curve["train_config"] = trainer.cfg.to_dict()
     curve["session_started"] = len(curve["sessions"])
     curve["sessions"].append(session)

@@ -57,10 +57,17 @@ def event_loss(
     channel: torch.Tensor | None,
     gamma: float = 2.2,
     eps: float = 0.1,
+    weight: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """MSE between predicted and measured log change; target: (B,) E(u; t0, t1], log units."""
+    """MSE between predicted and measured log change; target: (B,) E(u; t0, t1], log units.
+
+    weight: (B,) float32 0/1, the pixels that count (None: all); the mean is over them.
+    """
     pred = event_prediction(rgb0, rgb1, channel, gamma, eps)
-    return torch.mean((pred - target.float()) ** 2)
+    err = (pred - target.float()) ** 2
+    if weight is None:
+        return torch.mean(err)
+    return (err * weight).sum() / weight.sum().clamp_min(1.0)
 
 
 def total_loss(
@@ -78,16 +85,24 @@ def total_loss(
     reference sums the loss over its coarse and fine networks), plus `distortion_weight` times
     the field's `distortion` term when the weight is > 0 and the field gives one.
     target: (B,) E(u; t0, t1]; channel: (B,) Bayer channel or None (mono).
+    A render that could not march every ray (`out["valid"]`, (2B,) bool: a fixed sample buffer
+    overflowed) leaves out the pixels whose t0 or t1 ray is missing; parts["dropped"] is their
+    share.
     Returns (loss, parts) with parts detached scalar tensors, for logging.
     """
     b = target.shape[0]
     rgb = out["rgb"]
-    ev = event_loss(rgb[:b], rgb[b:], target, channel, gamma, eps)
+    weight = None
+    parts = {}
+    if out.get("valid") is not None:
+        weight = (out["valid"][:b] & out["valid"][b:]).float()
+        parts["dropped"] = 1.0 - weight.mean()
+    ev = event_loss(rgb[:b], rgb[b:], target, channel, gamma, eps, weight)
     loss = ev
-    parts = {"event": ev}
+    parts["event"] = ev
     if "rgb_coarse" in out:
         rc = out["rgb_coarse"]
-        evc = event_loss(rc[:b], rc[b:], target, channel, gamma, eps)
+        evc = event_loss(rc[:b], rc[b:], target, channel, gamma, eps, weight)
         loss = loss + evc
         parts["event_coarse"] = evc
     if distortion_weight > 0 and "distortion" in out:

@@ -209,6 +209,8 @@ class Trainer:
                 self.guard.disarm(self.optimizer)
             self.guard = None
             self.step_mode = "plain"
+        if hasattr(self.field, "use_fixed_capacity"):  # no host read of the sample count
+            self.field.use_fixed_capacity(self.step_mode == "device")
         return self.step_mode
 
     def _make_self_calibration(self) -> SelfCalibration | None:

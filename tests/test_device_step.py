@@ -122,3 +122,65 @@ def test_metrics_log_writes_every_step_it_should(scene, tmp_path):
     expected = {s for s in range(1, 41) if s % 4 == 0 or s <= 10}
     assert expected == set(steps)
     assert all(isinstance(r["loss"], float) and np.isfinite(r["loss"]) for r in rows)
+
+
+def test_an_overflowing_sample_buffer_drops_whole_pixels_and_says_so(scene, tmp_path):
+    """No silent truncation: rays that did not fit are flagged, their pixels leave the loss,
+    the rest render exactly as with exactly sized buffers, and the share is reported."""
+    from fastenerf.losses import total_loss
+
+    trainer = make(scene, tmp_path / "run", "device", steps=3)
+    for _ in range(2):
+        trainer.step()
+    field, batch = trainer.field, trainer.sampler.sample()
+    kw = dict(near=scene.config.near, background=trainer.background, train=True)
+    field.use_fixed_capacity(False)
+    torch.manual_seed(5)
+    exact = field.render(batch.rays_o, batch.rays_d, **kw)
+    field.use_fixed_capacity(True)
+    torch.manual_seed(5)
+    field.render(batch.rays_o, batch.rays_d, **kw)  # sizes the buffers from this batch
+    field.sample_capacity.capacity = exact["n_samples"] // 2
+    torch.manual_seed(5)
+    fixed = field.render(batch.rays_o, batch.rays_d, **kw)
+    valid = fixed["valid"]
+    assert 0 < int(valid.sum()) < len(valid)
+    assert int(fixed["n_samples"]) <= exact["n_samples"] // 2
+    assert torch.allclose(fixed["rgb"][valid], exact["rgb"][valid], atol=1e-6)
+    b = batch.target.shape[0]
+    loss, parts = total_loss(fixed, batch.target, batch.channel, gamma=2.2, eps=0.1)
+    keep = valid[:b] & valid[b:]
+    ref, _ = total_loss(
+        {"rgb": torch.cat([exact["rgb"][:b][keep], exact["rgb"][b:][keep]])},
+        batch.target[keep],
+        None if batch.channel is None else batch.channel[keep],
+        gamma=2.2,
+        eps=0.1,
+    )
+    assert float(loss.detach()) == pytest.approx(float(ref.detach()), rel=1e-5)
+    assert float(parts["dropped"]) == pytest.approx(1 - float(keep.float().mean()))
+    # the trainer reports the share, and the capacity grows to what was wanted
+    field.sample_capacity.capacity = exact["n_samples"] // 2
+    field._capacity_cone = field.options.marcher.cone_angle
+    stats = trainer.step()
+    trainer.flush_stats()
+    assert stats["dropped"] > 0
+    for _ in range(2):  # the copy of the want started at one refresh is applied at the next
+        field.sample_capacity.refresh()
+    assert field.sample_capacity.capacity >= exact["n_samples"] // 2
+
+
+def test_sample_capacity_follows_the_want_with_headroom():
+    from fastenerf.fields.capacity import SampleCapacity
+
+    cap = SampleCapacity(quantum=100, headroom=1.25, shrink_below=0.6)
+    cap.reset(1000)
+    assert cap.capacity == 1300  # 1250 rounded up to the quantum
+    # a refresh applies the maximum observed before the previous refresh (its copy has
+    # arrived by then) and starts copying the one since
+    expected = [(2000, 1300), (1600, 2500), (100, 2500), (100, 200)]
+    for want, capacity in expected:
+        cap.observe(torch.tensor([want // 2], dtype=torch.int32))
+        cap.observe(torch.tensor([want], dtype=torch.int32))
+        cap.refresh()
+        assert cap.capacity == capacity, (want, cap.capacity)

@@ -27,8 +27,10 @@ from ..kernels.composite import composite, distortion_loss
 from ..kernels.hashgrid import hash_grid_encode, init_table
 from ..kernels.occupancy import OccupancyGrid
 from ..kernels.raymarch import march_rays
+from ..kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
 from ..kernels.sh import sh_encode
 from .base import Field, RenderOutput, check_points
+from .capacity import SampleCapacity
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
 # background shows through. On `blocks` (mean box side 1.22; CPU, 116×87, 2048 rays/step, 300
@@ -94,6 +96,11 @@ class NGPField(Field):
     level_weights: torch.Tensor | None = None
     # the training step `update` last saw (the early cone applies before `early_steps`)
     train_step: int = 0
+    # fixed-capacity training marches (None: exactly sized, the host reads the count)
+    sample_capacity: SampleCapacity | None = None
+    _fixed_out = None
+    _fixed_key = None
+    _capacity_cone = None
 
     def __init__(
         self,
@@ -115,6 +122,8 @@ class NGPField(Field):
         self.options = opt
         self.cylinder = cylinder
         self.register_buffer("aabb", torch.tensor(aabb, dtype=torch.float32))
+        # the box as kernel arguments: read on the host once, not from the device every march
+        self._aabb_host = [float(v) for v in np.asarray(aabb, dtype=np.float32)]
         self.grid_cfg = opt.encoding
         gen = torch.Generator().manual_seed(seed)
         self.table = nn.Parameter(init_table(self.grid_cfg, "cpu", generator=gen))
@@ -205,25 +214,12 @@ class NGPField(Field):
                 f"NGPField.render: rays_o {tuple(rays_o.shape)} and rays_d "
                 f"{tuple(rays_d.shape)} differ in shape"
             )
-        opt = self.options.marcher
-        cone = opt.cone_angle
-        if train and opt.early_cone_angle is not None and self.train_step < opt.early_steps:
-            cone = opt.early_cone_angle
         rays_o = rays_o.float().contiguous()
         rays_d = rays_d.float().contiguous()
         with torch.no_grad(), record_function("march"):
-            jitter = torch.rand(len(rays_o), device=rays_o.device) if train else None
-            packed_info, t_starts, t_ends, ray_idx = march_rays(
-                rays_o,
-                rays_d,
-                self.aabb,
-                self.grid,
-                near=near,
-                cone_angle=cone,
-                dt_min=opt.dt_min,
-                max_samples=opt.max_samples,
-                jitter=jitter,
-            )
+            fixed = self._march(rays_o, rays_d, near, train)
+        packed_info, t_starts, t_ends, ray_idx = fixed[:4]
+        fixed = fixed if len(fixed) > 4 else None
         with record_function("field"):
             ri = ray_idx.long()
             t_mid = (0.5 * (t_starts + t_ends))[:, None]
@@ -236,13 +232,63 @@ class NGPField(Field):
             "rgb": out["rgb"],
             "depth": out["depth"],
             "opacity": out["opacity"],
-            "n_samples": int(len(t_starts)),
+            "n_samples": int(len(t_starts)) if fixed is None else fixed.n_used[0],
         }
+        if fixed is not None:
+            res["valid"] = ~fixed.overflow
         if train:
             res["distortion"] = distortion_loss(
                 out["weights"], t_starts, t_ends, packed_info
             ).mean()
         return res
+
+    def _march(self, rays_o, rays_d, near: float, train: bool) -> tuple:
+        """Training or inference samples: (packed_info, t_starts, t_ends, ray_idx), or a
+        FixedSamples when training marches into fixed-capacity buffers."""
+        opt = self.options.marcher
+        cone = opt.cone_angle
+        if train and opt.early_cone_angle is not None and self.train_step < opt.early_steps:
+            cone = opt.early_cone_angle
+        jitter = torch.rand(len(rays_o), device=rays_o.device) if train else None
+        march = dict(
+            near=near,
+            cone_angle=cone,
+            dt_min=opt.dt_min,
+            max_samples=opt.max_samples,
+            jitter=jitter,
+        )
+        if train and self.sample_capacity is not None:
+            return self._march_fixed(rays_o, rays_d, cone, march)
+        return march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
+
+    def use_fixed_capacity(self, on: bool) -> None:
+        """March training batches into fixed-capacity buffers (no host sync; `capacity.py`)
+        or into exactly sized ones (the host reads the count)."""
+        self.sample_capacity = SampleCapacity() if on else None
+        self._capacity_cone = None
+
+    def _march_fixed(self, rays_o, rays_d, cone: float, march: dict):
+        cap = self.sample_capacity
+        if cap.capacity is None or cone != self._capacity_cone:
+            # first batch, or the cone changed (the want jumps): size it once, exactly
+            exact = march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
+            cap.reset(len(exact[1]))
+            self._capacity_cone = cone
+        key = (len(rays_o), cap.capacity)
+        if self._fixed_out is None or self._fixed_key != key:
+            self._fixed_out = empty_fixed_samples(len(rays_o), cap.capacity, rays_o.device)
+            self._fixed_key = key
+        fixed = march_rays_fixed(
+            rays_o,
+            rays_d,
+            self._aabb_host,
+            self.grid,
+            capacity=cap.capacity,
+            out=self._fixed_out,
+            **march,
+        )
+        cap.observe(fixed.n_wanted)
+        return fixed
 
     # -- occupancy -----------------------------------------------------------------------
     def update(self, step: int) -> None:
@@ -251,6 +297,8 @@ class NGPField(Field):
         opt = self.options.occupancy
         if step % opt.update_every:
             return
+        if self.sample_capacity is not None:
+            self.sample_capacity.refresh()
         with torch.no_grad():
             self.grid.update(
                 step,

@@ -1,0 +1,73 @@
+"""How many sample slots a training step's fixed-capacity march gets (issue #17).
+
+`march_rays_fixed` writes into buffers of a capacity fixed by the caller, so nothing waits for
+the device to learn how many samples a batch has. The capacity follows what the marcher wanted:
+every step's `n_wanted` goes into a running maximum on the device; at each occupancy update the
+host starts a non-blocking copy of that maximum and, at the next update, reads the copy that has
+long arrived. The capacity then becomes the maximum times `headroom`, rounded up to `quantum`
+slots (so it changes rarely), and shrinks only once the want falls well below it.
+
+A step whose batch wants more than the capacity loses the rays that do not fit (the marcher
+flags them; the loss leaves their pixels out and the trainer reports the share): never silently.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+class SampleCapacity:
+    """Sample-buffer capacity of a training march: a Python int the host never waits for.
+
+    quantum: capacities are multiples of it (samples); headroom: capacity / observed maximum;
+    shrink_below: the capacity shrinks when the maximum falls below this share of it.
+    """
+
+    def __init__(self, quantum: int = 1 << 15, headroom: float = 1.25, shrink_below: float = 0.6):
+        self.quantum, self.headroom, self.shrink_below = int(quantum), headroom, shrink_below
+        self.capacity: int | None = None  # None: size the next march exactly (one host read)
+        self._max: torch.Tensor | None = None  # device running max of n_wanted
+        self._host: torch.Tensor | None = None  # its copy on the host, maybe in flight
+        self._ready: torch.cuda.Event | None = None
+
+    def size_for(self, wanted: int) -> int:
+        """The capacity for a want of `wanted` samples: headroom, rounded up to the quantum."""
+        q = self.quantum
+        return max(q, int(math.ceil(wanted * self.headroom / q)) * q)
+
+    def reset(self, wanted: int | None = None) -> None:
+        """Forget the history; size from `wanted` (an exact count) or at the next march."""
+        self.capacity = None if wanted is None else self.size_for(wanted)
+        self._max = self._host = self._ready = None
+
+    def observe(self, n_wanted: torch.Tensor) -> None:
+        """Fold a march's (1,) int32 device count into the running maximum (no host read)."""
+        if self._max is None:
+            self._max = n_wanted.detach().clone()
+        else:
+            torch.maximum(self._max, n_wanted, out=self._max)
+
+    def refresh(self) -> None:
+        """Apply the maximum copied at the previous call (if it has arrived), start a new copy."""
+        if self._max is None:
+            return
+        if self._host is not None and (self._ready is None or self._ready.query()):
+            wanted = int(self._host.item())
+            if self.capacity is None or wanted > self.capacity / self.headroom:
+                self.capacity = self.size_for(wanted)
+            elif wanted < self.shrink_below * self.capacity:
+                self.capacity = self.size_for(wanted)
+        elif self._host is not None:
+            return  # the last copy is still in flight: keep the maximum growing
+        on_cuda = self._max.device.type == "cuda"
+        if self._host is None:
+            self._host = torch.empty_like(self._max, device="cpu", pin_memory=on_cuda)
+        # in stream order: copy the maximum since the last copy, then start a new one
+        self._host.copy_(self._max, non_blocking=on_cuda)
+        self._max.zero_()
+        self._ready = None
+        if on_cuda:
+            self._ready = torch.cuda.Event()
+            self._ready.record()
