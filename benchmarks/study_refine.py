@@ -3,7 +3,8 @@
     python -m benchmarks.study_refine OUT
 
 Reads, under OUT: study_SCENE_plain/pose-error.json and study_SCENE_refine/pose-error.json
-(the pose study without and with `--refine-poses`, levels 0, 1, 2 degrees),
+(the pose study without and with `--refine-poses`, levels 0, 1, 2 degrees; any other
+study_SCENE_NAME folder, an EXTRA_VARIANT, is tabled and plotted beside them),
 time_{plain,refine,threshold,both}/pose-error.json (the step-time runs at 0 degrees, each
 alone on the device) and threshold/threshold.json (the threshold study). Writes
 OUT/refine_summary.json, OUT/refine_summary.md (every target, met or not, with its numbers)
@@ -54,9 +55,13 @@ def summarize(out: Path) -> dict[str, Any]:
     )
     res: dict[str, Any] = {"scenes": {}, "step_time": {}, "threshold": None, "targets": []}
     for s in scenes:
-        plain = _psnr(_load(out / f"study_{s}_plain" / "pose-error.json"))
-        ref = _psnr(_load(out / f"study_{s}_refine" / "pose-error.json"))
-        res["scenes"][s] = {"plain": plain, "refine": ref}
+        runs = {  # plain, refine, and any EXTRA_VARIANT study of the scene
+            p.name[len(f"study_{s}_") :]: _psnr(_load(p / "pose-error.json"))
+            for p in sorted(out.glob(f"study_{s}_*"))
+            if p.is_dir()
+        }
+        plain, ref = runs.get("plain", {}), runs.get("refine", {})
+        res["scenes"][s] = runs
         base = plain.get(0.0)
         for lv, tol in WITHIN_DB.items():
             got = ref.get(lv)
@@ -107,7 +112,7 @@ def markdown(res: dict) -> str:
     lines = ["### Issue #20 targets (from this session's studies)", ""]
     lines += ["| scene | run | 0° | 1° | 2° |", "|---|---|---:|---:|---:|"]
     for s, d in res["scenes"].items():
-        for k in ("plain", "refine"):
+        for k in d:
             cells = " | ".join(f"{d[k][lv]:.2f}" if lv in d[k] else "—" for lv in (0.0, 1.0, 2.0))
             lines.append(f"| {s} | {k} | {cells} |")
     t = res["step_time"]
@@ -134,9 +139,10 @@ def plot(res: dict, path: Path) -> Path:
     n = max(1, len(res["scenes"]))
     fig, axes = plt.subplots(1, n, figsize=(5 * n, 4), layout="constrained", squeeze=False)
     for ax, (s, d) in zip(axes[0], res["scenes"].items(), strict=False):
-        for k, color in (("plain", "tab:red"), ("refine", "tab:blue")):
+        colors = {"plain": "tab:red", "refine": "tab:blue"}
+        for k in d:
             lv = sorted(d[k])
-            ax.plot(lv, [d[k][x] for x in lv], "o-", color=color, label=k)
+            ax.plot(lv, [d[k][x] for x in lv], "o-", color=colors.get(k), label=k)
         ax.set_title(s)
         ax.set_xlabel("pose error (°)")
         ax.set_ylabel("PSNR (dB)")

@@ -135,7 +135,7 @@ def _done(run_dir: Path, args) -> bool:
 
 def run_study(args) -> dict[str, Any]:
     """Make (or reuse) the level scenes, train every variant, return the study's JSON."""
-    from benchmarks.study import _base_sets
+    from benchmarks.error_vs_time import parse_sets
 
     device = resolve_device(args.device)
     data, out = Path(args.data), Path(args.out)
@@ -144,7 +144,7 @@ def run_study(args) -> dict[str, Any]:
     if args.make_only:
         return {}
     out.mkdir(parents=True, exist_ok=True)
-    base = _base_sets(args.set)
+    base = parse_sets(args.set, ["ngp"])["ngp"]
     session = session_info(device, args.commit)
     stop = StopOnSignal((signal.SIGINT, signal.SIGTERM))
     deadline = None if args.max_wall_s is None else time.perf_counter() + args.max_wall_s
