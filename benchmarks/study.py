@@ -38,6 +38,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from benchmarks import study_threshold
 from benchmarks.cli import benchmark_main
 from benchmarks.curve import load_scene_dir, make_config, read_curve, train_curve
 from benchmarks.session import session_info
@@ -231,6 +232,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
             help=f"levels to run (default: {' '.join(_fmt(x) for x in spec.levels)})",
         )
         _add_common(s, name)
+    s = sub.add_parser(
+        "threshold",
+        help="contrast thresholds: estimated from a wrong start vs given (issue #20)",
+        description=study_threshold.__doc__.split("\n\n")[1],
+        epilog="outputs in --out:" + study_threshold.__doc__.split("Outputs in OUT:")[1],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    study_threshold.add_arguments(s)
+    _add_common(s, "threshold")
 
 
 def _add_common(s: argparse.ArgumentParser, name: str) -> None:
@@ -323,6 +333,8 @@ def _outputs_epilog(name: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     study = args.study
+    if study == "threshold":
+        return study_threshold.run(args)
     levels = parse_levels(study, args.levels)
     if args.steps is not None and args.steps < 1:
         raise InputError("--steps must be at least 1")

@@ -165,3 +165,43 @@ def plot_grid(gt: np.ndarray, tiles: list, path: str | Path, title: str = "") ->
     if title:
         fig.suptitle(title, fontsize=9)
     return save_figure(fig, path)
+
+
+THRESHOLD_COLORS = {"true": "tab:green", "start": "tab:red", "estimate": "tab:blue"}
+
+
+def plot_threshold(result: dict, path: str | Path, title: str = "") -> Path:
+    """The threshold study: PSNR per true C₊ and run (true / wrong start / estimate), and the
+    ratio C₊/C₋ each run used against the true ratio (the diagonal is exact)."""
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
+    runs = result["runs"]
+    for v, color in THRESHOLD_COLORS.items():
+        rs = [r for r in runs if r["variant"] == v]
+        if not rs:
+            continue
+        x = [r["level"] for r in rs]
+        a.plot(x, [r["psnr"] for r in rs], "o-", color=color, ms=5, label=v)
+        b.plot(
+            [r["true"]["ratio"] for r in rs],
+            [r["ratio_used"] for r in rs],
+            "o",
+            color=color,
+            ms=6,
+            label=v,
+        )
+    ratios = [r["true"]["ratio"] for r in runs] + [r["ratio_used"] for r in runs]
+    lo, hi = min(ratios) * 0.9, max(ratios) * 1.1
+    b.plot([lo, hi], [lo, hi], color="k", lw=0.8, ls="--", label="exact")
+    b.fill_between(
+        [lo, hi], [lo * 0.9, hi * 0.9], [lo * 1.1, hi * 1.1], color="k", alpha=0.08, label="±10 %"
+    )
+    a.set_xlabel("true C₊ (C₋ fixed)")
+    a.set_ylabel("PSNR (dB, colour-corrected)")
+    b.set_xlabel("true C₊/C₋")
+    b.set_ylabel("C₊/C₋ the run used")
+    for ax in (a, b):
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=8, loc="best")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    return save_figure(fig, path)

@@ -130,9 +130,33 @@ def level_row(
         "measured": measured_perturbation(study, conf.get("perturbation")),
         "knobs": {k: train.get(k) for k in KNOBS},
         "rays_per_step": train.get("rays_per_step"),
+        "self_calibration": calibration_summary(train, conf.get("self_calibration")),
         "points": points,
         "tile": str((run_dir / VIEW_TILE).relative_to(out)) if fe else None,
         "sessions": [_session_line(s) for s in curve.get("sessions", [])],
+    }
+
+
+CALIBRATION_KNOBS = (
+    "refine_poses",
+    "refine_optimizer",
+    "refine_lr",
+    "refine_start",
+    "refine_c2f_mode",
+    "refine_c2f_start",
+    "refine_c2f_end",
+    "estimate_threshold",
+)
+
+
+def calibration_summary(train: dict, report: dict | None) -> dict | None:
+    """A run's self-calibration (issue #20): its knobs and final stats (pose error left after
+    refinement, threshold estimates), or None when neither option was on."""
+    if not (train.get("refine_poses") or train.get("estimate_threshold")):
+        return None
+    return {
+        "knobs": {k: train.get(k) for k in CALIBRATION_KNOBS if k in train},
+        "stats": (report or {}).get("stats", {}),
     }
 
 
@@ -276,7 +300,7 @@ def _table(result: dict) -> list[str]:
     if study == "ablation":
         head = "| variant | win_min..win_max (views) | neg_ratio | distortion_weight |"
     elif study == "pose-error":
-        head = "| pose error | measured mean / max (°) |"
+        head = "| pose error | measured mean / max (°) | after refinement mean / max (°) |"
     else:
         head = "| noise | measured added fraction (events) |"
     n_first = head.count("|") - 1
@@ -309,8 +333,22 @@ def _first_cells(study: str, r: dict) -> str:
             f"{_f(k['distortion_weight'], 'g')} |"
         )
     if study == "pose-error":
-        return f"| {name} | {_f(m['mean_deg'], '.4g')} / {_f(m['max_deg'], '.4g')} |"
+        return (
+            f"| {name} | {_f(m['mean_deg'], '.4g')} / {_f(m['max_deg'], '.4g')} | {_pose_left(r)} |"
+        )
     return f"| {name} | {100 * m['fraction']:.3f} % ({m['added_events']:,}) |"
+
+
+def _pose_left(r: dict) -> str:
+    """The pose error a refined run ends with (°; at level 0 the corrections' own size), or
+    "no refinement"."""
+    cal = r.get("self_calibration") or {}
+    if not (cal.get("knobs") or {}).get("refine_poses"):
+        return "no refinement"
+    st = cal.get("stats") or {}
+    mean = st.get("pose_error_deg", st.get("pose_correction_deg"))
+    top = st.get("pose_error_max_deg", st.get("pose_correction_max_deg"))
+    return f"{_f(mean, '.3f')} / {_f(top, '.3f')}"
 
 
 def _score_cells(r: dict, ref, sup: dict) -> str:

@@ -8,6 +8,9 @@ gets weight w_k(α) = (1 − cos(π · clamp(α − k, 0, 1))) / 2 as α grows o
 - vanilla: the positional encoding's frequency bands (the raw x is always kept), α 0 → bands.
 A field takes the weights as an attribute (`NGPField.level_weights`,
 `PositionalEncoding.band_weights`); None means every level at full weight (no multiply).
+The weights act on the field's features (BARF, mode "field") or only on the gradient w.r.t.
+the positions, the pose gradient's path (mode "gradient": the field learns every level from
+the start; `fastenerf.fields.level_weights`).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import math
 import torch
 
 from .fields.base import Field
+from .fields.level_weights import MODES
 
 
 def cosine_window(alpha: float, n: int, device=None) -> torch.Tensor:
@@ -33,17 +37,25 @@ def schedule_fraction(progress: float, start: float, end: float) -> float | None
     return None if r >= 1.0 else max(0.0, r)
 
 
-def set_encoding_window(field: Field, progress: float, start: float, end: float) -> float | None:
+def set_encoding_window(
+    field: Field, progress: float, start: float, end: float, mode: str = "field"
+) -> float | None:
     """Set the field's level weights for training `progress` in [0, 1]; returns the fraction
-    of the schedule done (None once every level is on, or for a backend without levels)."""
+    of the schedule done (None once every level is on, or for a backend without levels).
+    mode: "field" (BARF: the field sees the weighted levels) or "gradient" (only the gradient
+    w.r.t. positions is weighted; `fastenerf.fields.level_weights`)."""
+    if mode not in MODES:
+        raise ValueError(f"set_encoding_window: mode must be one of {MODES}, got {mode!r}")
     r = schedule_fraction(progress, start, end)
     if field.backend == "ngp":
         n = field.grid_cfg.n_levels
         field.level_weights = None if r is None else cosine_window(1 + r * (n - 1), n, _dev(field))
+        field.level_weights_mode = mode
     elif field.backend == "vanilla":
         n = len(field.pos_enc.freqs)
         w = None if r is None else cosine_window(r * n, n, _dev(field))
         field.pos_enc.band_weights = w
+        field.pos_enc.band_weights_mode = mode
     else:
         return None
     return r

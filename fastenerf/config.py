@@ -370,7 +370,7 @@ class TrainConfig:
     """Learn a correction of every training pose (window grid) with the field (own Adam)."""
     refine_translation: bool = True
     """Also learn the camera centres' shifts (off: rotations only)."""
-    refine_lr: float = 1e-3
+    refine_lr: float = 3e-3
     """Pose-correction lr at the start (rad, world units per step); decays to refine_lr_final."""
     refine_lr_final: float = 1e-5
     """Pose-correction learning rate at the end of the budget."""
@@ -379,6 +379,18 @@ class TrainConfig:
     levels, vanilla frequency bands) start to fade in; before it only the coarsest."""
     refine_c2f_end: float = 0.5
     """Budget fraction where every level is on (<= refine_c2f_start: no schedule)."""
+    refine_c2f_mode: Literal["field", "gradient"] = "gradient"
+    """What the coarse-to-fine weights act on: field (BARF: the field sees only the levels on)
+    or gradient (the field sees every level; only the pose gradient is level-weighted)."""
+    refine_start: float = 0.1
+    """Budget fraction before which the poses are not updated (the field first carves its fog);
+    the pose lr then decays from refine_lr to refine_lr_final over the rest of the budget."""
+    refine_warmup: float = 0.1
+    """Fraction of the pose schedule (after refine_start) over which the pose lr ramps up
+    linearly from 0 (0: no ramp)."""
+    refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
+    """adam: one Adam over every pose row (a row no batch sees still moves on its momentum);
+    row-adam: lazy Adam, each row's moments and step only when a batch sees that row."""
     refine_gauge: Literal["mean", "first", "none"] = "mean"
     """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift)."""
     estimate_threshold: bool = False
@@ -429,11 +441,19 @@ class TrainConfig:
         for key in ("refine_lr", "refine_lr_final", "threshold_lr"):
             v = getattr(self, key)
             _check(0 < v <= 1, where, key, f"must be in (0, 1], got {v}")
-        for key in ("refine_c2f_start", "refine_c2f_end"):
+        for key in ("refine_c2f_start", "refine_c2f_end", "refine_start", "refine_warmup"):
             v = getattr(self, key)
             _check(0 <= v <= 1, where, key, f"must be a budget fraction in [0, 1], got {v}")
         gauges, w = ("mean", "first", "none"), self.threshold_pixel_weight
         _check(self.refine_gauge in gauges, where, "refine_gauge", f"must be one of {gauges}")
+        for key, allowed in (
+            ("refine_c2f_mode", ("field", "gradient")),
+            ("refine_optimizer", ("adam", "row-adam")),
+        ):
+            v = getattr(self, key)
+            _check(v in allowed, where, key, f"must be one of {allowed}, got {v!r}")
+        v = self.refine_start
+        _check(v < 1, where, "refine_start", f"must be below 1 (poses never learnt), got {v}")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:

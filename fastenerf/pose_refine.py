@@ -122,3 +122,42 @@ class PoseRefiner(nn.Module):
             vals["pose_centre_error"] = (centre - true[:, :3, 3]).norm(dim=-1).mean()
         keys = list(vals)
         return dict(zip(keys, torch.stack([vals[k] for k in keys]).tolist(), strict=True))
+
+
+class RowAdam(torch.optim.Optimizer):
+    """Lazy Adam over the rows of (G, k) parameters: a row's moments, its step count (bias
+    correction) and its update change only on steps whose batch saw that row (`step(rows)`).
+
+    Why: a batch sees a few of the grid's rows; plain Adam keeps moving every other row on
+    its momentum (about ten steps' worth after each visit, each normalised to the lr), so the
+    noise of one visit becomes a full-size step of a pose nothing looked at; and with a gauge
+    fix every row gets a tiny gradient (the mean's) that Adam scales up to the lr.
+    """
+
+    def __init__(self, params, lr: float, betas=(0.9, 0.999), eps: float = 1e-12):
+        super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
+
+    @torch.no_grad()
+    def step(self, rows: torch.Tensor | None = None, closure=None):  # noqa: D102
+        """rows: (G,) bool, the rows to step (None: every row with a gradient)."""
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                seen = p.grad.ne(0).any(-1) if rows is None else rows.to(p.device)
+                if not bool(seen.any()):
+                    continue
+                st = self.state[p]
+                if not st:
+                    st["exp_avg"] = torch.zeros_like(p)
+                    st["exp_avg_sq"] = torch.zeros_like(p)
+                    st["row_steps"] = torch.zeros(p.shape[0], 1, device=p.device)
+                g = p.grad[seen]
+                m = st["exp_avg"][seen].mul_(b1).add_(g, alpha=1 - b1)
+                v = st["exp_avg_sq"][seen].mul_(b2).addcmul_(g, g, value=1 - b2)
+                t = st["row_steps"][seen] + 1
+                st["exp_avg"][seen], st["exp_avg_sq"][seen], st["row_steps"][seen] = m, v, t
+                m_hat, v_hat = m / (1 - b1**t), v / (1 - b2**t)
+                p[seen] -= group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
+        return None

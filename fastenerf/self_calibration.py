@@ -21,7 +21,7 @@ import torch
 from .coarse_to_fine import set_encoding_window
 from .config import TrainConfig
 from .fields.base import Field
-from .pose_refine import PoseRefiner
+from .pose_refine import PoseRefiner, RowAdam
 from .sampling import RayBatch, RaySampler
 from .threshold import ThresholdEstimator
 
@@ -35,6 +35,18 @@ def used_rows(sampler: RaySampler) -> torch.Tensor:
     used = torch.zeros(ws.n_views + 1, dtype=torch.bool)
     used[torch.from_numpy(np.unique(ws.pose_index(np.arange(ws.n_views + 1))))] = True
     return used
+
+
+def pose_lr(cfg: TrainConfig, progress: float) -> float:
+    """The pose corrections' lr at training `progress` in [0, 1]: 0 before refine_start, then
+    an exponential decay from refine_lr to refine_lr_final over the rest of the budget, ramped
+    up linearly over its first refine_warmup (a row's first visits would otherwise take
+    full-size Adam steps in whatever direction the young field's gradient points)."""
+    if progress < cfg.refine_start:
+        return 0.0
+    r = (progress - cfg.refine_start) / (1.0 - cfg.refine_start)
+    ramp = 1.0 if cfg.refine_warmup <= 0 else min(1.0, r / cfg.refine_warmup)
+    return ramp * cfg.refine_lr * (cfg.refine_lr_final / cfg.refine_lr) ** r
 
 
 class SelfCalibration:
@@ -58,6 +70,8 @@ class SelfCalibration:
         self.poses: PoseRefiner | None = None
         self.thresholds: ThresholdEstimator | None = None
         groups = []
+        self.pose_optimizer: RowAdam | None = None  # refine_optimizer "row-adam"
+        self._seen: torch.Tensor | None = None  # (G,) bool rows the last batch saw
         if cfg.refine_poses:
             self.poses = PoseRefiner(
                 sampler.grid_c2w,
@@ -66,7 +80,11 @@ class SelfCalibration:
                 true_c2w,
                 translation=cfg.refine_translation,
             )
-            groups.append({"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"})
+            group = {"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"}
+            if cfg.refine_optimizer == "row-adam":
+                self.pose_optimizer = RowAdam([group], cfg.refine_lr, ADAM_BETAS, ADAM_EPS)
+            else:
+                groups.append(group)
         if cfg.estimate_threshold:
             self.thresholds = ThresholdEstimator(
                 *thresholds,
@@ -78,9 +96,12 @@ class SelfCalibration:
             )
             params = [p for p in self.thresholds.parameters() if p.requires_grad]
             groups.append({"params": params, "lr": cfg.threshold_lr, "name": "thresholds"})
-        if not groups:
+        if not (groups or self.pose_optimizer):
             raise ValueError("SelfCalibration: neither refine_poses nor estimate_threshold is on")
-        self.optimizer = torch.optim.Adam(groups, betas=ADAM_BETAS, eps=ADAM_EPS)
+        # torch's Adam takes no empty list: a placeholder group when row-adam has the poses
+        self.optimizer = torch.optim.Adam(
+            groups or [{"params": [], "name": "none"}], betas=ADAM_BETAS, eps=ADAM_EPS
+        )
         self.skipped_steps = 0  # steps whose gradients were not finite
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
 
@@ -97,15 +118,20 @@ class SelfCalibration:
         threshold lr follows; the pose lr decays on its own from refine_lr to refine_lr_final.
         """
         c = self.cfg
-        for g in self.optimizer.param_groups:
+        for g in self.param_groups():
             if g["name"] == "poses":
-                g["lr"] = c.refine_lr * (c.refine_lr_final / c.refine_lr) ** progress
+                g["lr"] = pose_lr(c, progress)
             else:
                 g["lr"] = c.threshold_lr * field_lr_scale
         if self.poses is not None:
             self.c2f = set_encoding_window(
-                self.field, progress, c.refine_c2f_start, c.refine_c2f_end
+                self.field, progress, c.refine_c2f_start, c.refine_c2f_end, c.refine_c2f_mode
             )
+
+    def param_groups(self) -> list[dict]:
+        """Every optimiser group (poses, thresholds) of both optimisers."""
+        extra = [] if self.pose_optimizer is None else self.pose_optimizer.param_groups
+        return [g for g in (*self.optimizer.param_groups, *extra) if g["params"]]
 
     def apply(
         self, batch: RayBatch
@@ -117,6 +143,8 @@ class SelfCalibration:
             if batch.pose_idx is None:
                 raise ValueError("SelfCalibration: the sampler was built without with_poses")
             rays_o, rays_d = self.poses.rays(batch.dirs, batch.pose_idx)
+            self._seen = torch.zeros(len(self.poses.delta), dtype=torch.bool, device=rays_o.device)
+            self._seen[batch.pose_idx] = True
         if self.thresholds is not None:
             if batch.parts is None:
                 raise ValueError("SelfCalibration: the sampler was built without with_parts")
@@ -126,17 +154,21 @@ class SelfCalibration:
 
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)
+        if self.pose_optimizer is not None:
+            self.pose_optimizer.zero_grad(set_to_none=True)
 
     def step(self) -> bool:
         """One optimiser step unless a gradient is not finite (then none; counted in
         `skipped_steps`); returns whether it stepped."""
-        grads = [p.grad for g in self.optimizer.param_groups for p in g["params"]]
+        grads = [p.grad for g in self.param_groups() for p in g["params"]]
         grads = [g for g in grads if g is not None]
         if grads and not bool(torch.stack([torch.isfinite(g).all() for g in grads]).all()):
             self.skipped_steps += 1
             self.zero_grad()
             return False
         self.optimizer.step()
+        if self.pose_optimizer is not None and self.pose_optimizer.param_groups[0]["lr"] > 0:
+            self.pose_optimizer.step(self._seen)
         if self.thresholds is not None:
             self.thresholds.project()
         return True
@@ -189,6 +221,9 @@ class SelfCalibration:
             "poses": None if self.poses is None else self.poses.state_dict(),
             "thresholds": None if self.thresholds is None else self.thresholds.state_dict(),
             "optimizer": self.optimizer.state_dict(),
+            "pose_optimizer": None
+            if self.pose_optimizer is None
+            else self.pose_optimizer.state_dict(),
             "skipped_steps": self.skipped_steps,
         }
 
@@ -198,6 +233,8 @@ class SelfCalibration:
         if self.thresholds is not None:
             self.thresholds.load_state_dict(state["thresholds"])
         self.optimizer.load_state_dict(state["optimizer"])
+        if self.pose_optimizer is not None:
+            self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         self.skipped_steps = int(state.get("skipped_steps", 0))
 
 

@@ -184,7 +184,16 @@ def test_refinement_recovers_a_known_perturbation(ball):
     bad_rig, report = perturb_poses(rig, 2.0, seed=5, grid_t=grid_t)
     true_c2w = torch.as_tensor(rig.pose(grid_t))
     # the frozen field fixes the gauge: the corrections can (and must) find the truth itself
-    tc = TrainConfig(refine_poses=True, refine_lr=5e-3, refine_lr_final=5e-4, refine_gauge="none")
+    tc = TrainConfig(  # plain Adam over every row, from the first step (the row Adam and
+        # the delayed start: tests/test_pose_refine.py)
+        refine_poses=True,
+        refine_lr=5e-3,
+        refine_lr_final=5e-4,
+        refine_gauge="none",
+        refine_optimizer="adam",
+        refine_start=0.0,
+        refine_warmup=0.0,
+    )
     cal, _ = calibration_run(cfg, tc, events, bad_rig, 120, true_c2w)
     st = cal.stats()
     # poses start 2° off (exactly: the perturbation is a rotation by 2° about each centre);

@@ -199,3 +199,32 @@ def test_help_documents_levels_and_outputs(capsys):
     text = capsys.readouterr().out
     assert "0 0.01 0.1 0.3 0.5 1 2 degrees" in text and "no-distortion-loss" in text
     assert "STUDY_grid.png" in text and "noise.md" in text and "27.31" in text
+
+
+def test_threshold_study_simulates_trains_three_ways_and_reports_the_ratio(tmp_path):
+    """One level (C+ 0.4, C- 0.25): simulated once (reused on a second call), trained as given
+    (true), from the wrong start (0.25 / 0.25) and with the ratio estimated; the JSON records
+    the thresholds each run used, the table and the plots are written."""
+    data, out = tmp_path / "data", tmp_path / "out"
+    args = ["bench", "study", "threshold", "blocks", "--data", str(data), "--levels", "0.4"]
+    args += ["--size", "32x24", "--frames", "40", "--steps", "1", "--out", str(out), *FAST]
+    assert cli_main(args + ["--make-only"]) == 0
+    stamp = (data / "blocks-pos0.4" / "threshold_study.json").stat().st_mtime_ns
+    assert cli_main(args) == 0
+    assert (data / "blocks-pos0.4" / "threshold_study.json").stat().st_mtime_ns == stamp
+    res = json.loads((out / "threshold.json").read_text())
+    runs = {r["variant"]: r for r in res["runs"]}
+    assert list(runs) == ["true", "start", "estimate"]
+    assert runs["true"]["start"] == {"pos": 0.4, "neg": 0.25}
+    assert runs["start"]["start"] == {"pos": 0.25, "neg": 0.25}
+    assert runs["start"]["ratio_error"] == pytest.approx(1 / 1.6 - 1)
+    est = runs["estimate"]["estimate"]
+    assert est["pos"] * est["neg"] == pytest.approx(0.0625, rel=1e-5)  # only the ratio moves
+    assert all(r["finished"] and math.isfinite(r["psnr"]) for r in runs.values())
+    assert runs["true"]["psnr_vs_true"] == 1.0
+    for png in ("threshold.png", "threshold_grid.png"):
+        assert iio.imread(out / png)[..., :3].std() > 0
+    assert "ratio within 10 %" in (out / "threshold.md").read_text()
+    # a level folder made with other settings is refused in one line
+    bad = [a if a != "0.03" else "0.05" for a in args] + ["--mismatch", "0.05", "--resume"]
+    assert cli_main(bad) == 2

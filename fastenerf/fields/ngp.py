@@ -31,6 +31,7 @@ from ..kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
 from ..kernels.sh import sh_encode
 from .base import Field, RenderOutput, check_points
 from .capacity import SampleCapacity
+from .level_weights import weight_gradient_only
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
 # background shows through. On `blocks` (mean box side 1.22; CPU, 116×87, 2048 rays/step, 300
@@ -101,6 +102,7 @@ class NGPField(Field):
     _fixed_out = None
     _fixed_key = None
     _capacity_cone = None
+    level_weights_mode: str = "field"  # or "gradient" (fields/level_weights.py)
 
     def __init__(
         self,
@@ -183,9 +185,17 @@ class NGPField(Field):
 
     def _geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3)."""
-        feats = hash_grid_encode(self._normalise(x.float()), self.table.float(), self.grid_cfg)
+        xn, table, w, cfg = self._normalise(x.float()), self.table.float(), None, self.grid_cfg
         if self.level_weights is not None:
-            feats = feats * self.level_weights.repeat_interleave(self.grid_cfg.n_features)
+            w = self.level_weights.repeat_interleave(cfg.n_features)
+        if w is not None and self.level_weights_mode == "gradient":
+            # coarse-to-fine on the pose gradient only (fields/level_weights.py)
+            feats = hash_grid_encode(xn.detach(), table, cfg)
+            if xn.requires_grad:
+                feats = weight_gradient_only(feats, hash_grid_encode(xn, table.detach(), cfg), w)
+        else:
+            feats = hash_grid_encode(xn, table, cfg)
+            feats = feats if w is None else feats * w
         h = self.density_net(feats.to(self.density_net[0].weight.dtype))
         net = self.options.network
         sigma = trunc_exp(h[:, 0].float() + net.density_bias, net.max_log_density)

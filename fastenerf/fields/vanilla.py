@@ -26,15 +26,18 @@ from ..clip import clip_density
 from ..config import CylinderConfig
 from ..errors import InputError
 from .base import Field, RenderOutput, check_points
+from .level_weights import weight_gradient_only
 
 
 class PositionalEncoding(nn.Module):
     """x (N, D) -> [x, sin(2^k x), cos(2^k x)] for k < n_freqs, (N, D (1 + 2 n_freqs)).
 
-    band_weights: None, or (n_freqs,) weights of the bands (coarse-to-fine pose refinement).
+    band_weights: None, or (n_freqs,) weights of the bands (coarse-to-fine pose refinement),
+    applied as `band_weights_mode` says (fields/level_weights.py).
     """
 
     band_weights: torch.Tensor | None = None
+    band_weights_mode: str = "field"  # or "gradient" (fields/level_weights.py)
 
     def __init__(self, n_freqs: int):
         super().__init__()
@@ -47,10 +50,16 @@ class PositionalEncoding(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xb = (x[..., None, :] * self.freqs[:, None]).flatten(-2)
-        if self.band_weights is None:
-            return torch.cat([x, torch.sin(xb), torch.cos(xb)], -1)
+        s, c = torch.sin(xb), torch.cos(xb)
+        if self.band_weights is None or (
+            self.band_weights_mode == "gradient" and not x.requires_grad
+        ):
+            return torch.cat([x, s, c], -1)
         w = self.band_weights.to(xb.dtype).repeat_interleave(x.shape[-1])
-        return torch.cat([x, torch.sin(xb) * w, torch.cos(xb) * w], -1)
+        if self.band_weights_mode == "gradient":
+            # the encoding has no parameters: its value with x's gradient weighted
+            return torch.cat([x, *(weight_gradient_only(f.detach(), f, w) for f in (s, c))], -1)
+        return torch.cat([x, s * w, c * w], -1)
 
 
 class NeRFMLP(nn.Module):
