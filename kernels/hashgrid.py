@@ -287,6 +287,10 @@ def _kernels(
             return
         level = levels[lv]
         g = load(grad, i, lv)
+        # A point without gradient scatters nothing: the padding of a fixed-capacity march
+        # (all at one point, so its atomics would serialise) and samples past a ray's end.
+        if wp.length_sq(g) == 0.0:
+            return
         c, f = cell_of(x[i], level[0])
         for k in range(4):
             dy = k & 1
