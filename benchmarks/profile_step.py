@@ -164,8 +164,10 @@ class ProfileSteps(Hook):
             return
         torch.cuda.set_sync_debug_mode("default")
         self._catch.__exit__(None, None, None)
-        syncs = [
-            str(w.message).splitlines()[0] for w in self._seen if "synchroniz" in str(w.message)
+        syncs = [  # where each one was called from (the debug mode's own notice left out)
+            f"{w.filename}:{w.lineno}"
+            for w in self._seen
+            if "called a synchronizing" in str(w.message)
         ]
         self.result["host_syncs_per_step"] = len(syncs) / SYNC_CHECK_STEPS
         self.result["host_sync_examples"] = sorted(set(syncs))[:10]
