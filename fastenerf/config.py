@@ -20,6 +20,7 @@ from typing import Any, Literal
 
 from . import backends
 from .backends import BACKEND_NAMES, get_option, parse_options
+from .cpu_preset import NGP_CPU_RAYS, ngp_cpu_options
 from .errors import InputError
 from .perturb_config import PerturbConfig
 from .schema import check as _check
@@ -455,9 +456,13 @@ class TrainConfig:
             c.neg_ratio = 0.05 if real else 0.1
         if c.distortion_weight is None:
             c.distortion_weight = 0.0 if real else 1e-4
+        cpu_ngp = c.backend == "ngp" and not str(device).startswith("cuda")
+        if cpu_ngp:  # the CPU preset fills the options left unset (fastenerf.cpu_preset)
+            c.backend_options = ngp_cpu_options(c.backend_options, scene.aabb, scene.cylinder)
         if c.rays_per_step is None:
             # ~256k samples per step on a GPU (DESIGN §4); a 2-core CPU needs small batches.
             c.rays_per_step = 8192 if str(device).startswith("cuda") else 512
+            c.rays_per_step = NGP_CPU_RAYS if cpu_ngp else c.rays_per_step
             c.rays_per_step = max(c.rays_per_step, c.windows_per_step)
         b = backends.backend(c.backend)
         if c.lr is None:
