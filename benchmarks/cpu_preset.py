@@ -149,13 +149,13 @@ def parse_variant(text: str) -> tuple[str, dict]:
     return name, v
 
 
-def build(scene, name: str, v: dict, seconds: float, out: Path):
+def build(scene, name: str, v: dict, seconds: float, out: Path, device: str = "cpu"):
+    """The trainer of variant `v` in OUT/NAME (an earlier run there is replaced)."""
     from fastenerf.kernels.rows import ATTR
     from fastenerf.train import Trainer
 
-    cfg = make_config(
-        v.get("backend", "ngp"), "fast", seconds, "cpu", v.get("train"), v.get("backend_options")
-    )
+    backend, opts = v.get("backend", "ngp"), v.get("backend_options")
+    cfg = make_config(backend, "fast", seconds, device, v.get("train"), opts)
     if (out / name).exists():
         shutil.rmtree(out / name)  # this benchmark's own run folder of an earlier call
     tr = Trainer(scene, cfg, out / name)

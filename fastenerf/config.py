@@ -313,7 +313,8 @@ class TrainConfig:
     with events in their window). Default: 0.1 synthetic, 0.05 real."""
     rays_per_step: int | None = field(default=None, metadata={"min": 1, "max": MAX_RAYS_PER_STEP})
     """Pixels per step, each rendered at the window's start and end. Default: by preset and
-    device (8192 on CUDA, 512 on a CPU; 1024 for eventnerf)."""
+    device (8192 on CUDA, 512 on a CPU, the CPU preset's for ngp on a CPU; 1024 for
+    eventnerf)."""
     windows_per_step: int = field(default=1, metadata={"min": 1, "max": 65536})
     """Windows per step; the pixels are split evenly over them (fast preset: 16)."""
     lr: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
