@@ -3,8 +3,8 @@
 On a GPU a step is ~256k samples through a 16-level, 2^19-row hash grid; a CPU runs Warp's
 kernels on one thread and the MLPs on a core or two, so every size is cut to what the CPU's
 step can afford (measured with `benchmarks.cpu_preset`, figures in benchmarks/RESULTS.md):
-fewer, smaller hash levels, a coarse occupancy grid, longer marching steps and fewer rays per
-step. `TrainConfig.resolved` applies it for ngp on a CPU device, to the options the user left
+fewer, smaller hash levels, narrower MLPs, a coarse occupancy grid, longer marching steps and
+fewer rays per step. `TrainConfig.resolved` applies it for ngp on a CPU device, to the options the user left
 unset, so it is recorded in the run's config.json; GPU runs never see it.
 """
 
@@ -17,13 +17,14 @@ from .backends import get_option, set_option
 
 # Backend options (see fastenerf.backends.NGPOptions) of the CPU preset.
 NGP_CPU_OPTIONS: dict[str, Any] = {
-    "log2_table_size": 15,
+    "log2_table_size": 14,
     "n_levels": 8,
     "max_resolution": 256,
     "grid_resolution": 32,
+    "hidden": 32,
 }
 # dt_min = √3 · the box's longest side / NGP_CPU_DIAGONAL_STEPS (the GPU's default: / 1024).
-NGP_CPU_DIAGONAL_STEPS = 96
+NGP_CPU_DIAGONAL_STEPS = 64
 # Pixels per step (each rendered at the window's start and end).
 NGP_CPU_RAYS = 256
 

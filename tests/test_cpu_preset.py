@@ -56,7 +56,7 @@ def test_user_options_win_flat_or_nested():
     c = cfg.resolved(scene(), "cpu")
     assert get_option("ngp", c.backend_options, "n_levels") == 12
     assert get_option("ngp", c.backend_options, "grid_resolution") == 64
-    assert get_option("ngp", c.backend_options, "log2_table_size") == 15
+    assert get_option("ngp", c.backend_options, "log2_table_size") == 14
     assert c.rays_per_step == 64
     parse_options("ngp", c.backend_options)  # no key given twice
 
