@@ -4,8 +4,8 @@ On a GPU a step is ~256k samples through a 16-level, 2^19-row hash grid; a CPU r
 kernels on one thread and the MLPs on a core or two, so every size is cut to what the CPU's
 step can afford (measured with `benchmarks.cpu_preset`, figures in benchmarks/RESULTS.md):
 fewer, smaller hash levels, narrower MLPs, a coarse occupancy grid, longer marching steps and
-fewer rays per step. `TrainConfig.resolved` applies it for ngp on a CPU device, to the options the user left
-unset, so it is recorded in the run's config.json; GPU runs never see it.
+fewer rays per step. `TrainConfig.resolved` applies it for ngp on a CPU device, to the options
+the user left unset, so it is recorded in the run's config.json; GPU runs never see it.
 """
 
 from __future__ import annotations
