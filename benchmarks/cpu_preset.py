@@ -52,6 +52,8 @@ VANILLA_DEMO = {
         "n_fine": 16,
     },
 }
+# Variants other than "preset" set every key of the CPU preset (fastenerf.cpu_preset), which
+# fills the options a run leaves unset.
 VARIANTS: dict[str, dict[str, Any]] = {
     # the CPU preset (fastenerf.cpu_preset) and the row-sparse Adam: what `train` runs now
     "preset": {},
@@ -64,6 +66,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
             "max_resolution": 2048,
             "grid_resolution": 128,
             "dt_min": 0.0025,
+            "hidden": 64,
         },
         "optimizer": "dense",
     },
@@ -76,11 +79,24 @@ VARIANTS: dict[str, dict[str, Any]] = {
             "max_resolution": 512,
             "grid_resolution": 64,
             "dt_min": 0.02,
+            "hidden": 64,
         },
         "optimizer": "dense",
     },
     # the preset with dense torch Adam: the optimiser's share
     "preset-dense": {"optimizer": "dense"},
+    # the GPU sizes with today's optimiser (RowSparseAdam: the table is over its threshold)
+    "gpu-sizes": {
+        "train": {"rays_per_step": 512},
+        "backend_options": {
+            "log2_table_size": 19,
+            "n_levels": 16,
+            "max_resolution": 2048,
+            "grid_resolution": 128,
+            "dt_min": 0.0025,
+            "hidden": 64,
+        },
+    },
     "vanilla-demo": VANILLA_DEMO,
 }
 

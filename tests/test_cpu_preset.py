@@ -77,3 +77,48 @@ def test_dt_min_follows_the_clipped_box():
     assert cpu_dt_min([-1, -1, -1, 1, 1, 1]) == pytest.approx(
         math.sqrt(3) * 2 / NGP_CPU_DIAGONAL_STEPS
     )
+
+
+def test_baton_gives_turns_in_a_ring():
+    import threading
+
+    from benchmarks.cpu_preset import Baton
+
+    baton, order = Baton(3), []
+
+    def worker(i, steps):
+        baton.wait(i)
+        for s in range(steps):
+            order.append(i)
+            if s < steps - 1:
+                baton.pass_on(i)
+                baton.wait(i)
+        baton.leave(i)
+
+    threads = [threading.Thread(target=worker, args=(i, n)) for i, n in enumerate((2, 4, 3))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=10)
+    assert order == [0, 1, 2, 0, 1, 2, 1, 2, 1]
+
+
+def test_side_by_side_benchmark_on_the_tiny_scene(tiny_scene, tmp_path):
+    """Two variants race on the tiny scene; each trains its own seconds and is scored."""
+    import json
+
+    from benchmarks import cpu_preset
+
+    tiny = '{"backend_options": {"log2_table_size": 10, "n_levels": 4, "max_resolution": 32}}'
+    argv = ["--scene", str(tiny_scene), "--seconds", "1.5", "--out", str(tmp_path)]
+    argv += ["--variant", f"a={tiny}", "--variant", "b=" + tiny[:-1] + ', "optimizer": "dense"}']
+    assert cpu_preset.main(argv) == 0
+    res = json.loads((tmp_path / "cpu_preset.json").read_text())
+    rows = {r["variant"]: r for r in res["rows"]}
+    assert set(rows) == {"a", "b"}
+    for r in rows.values():
+        assert r["steps"] > 0 and r["train_seconds"] >= 1.5
+        assert r["psnr"] > 0 and r["constant_psnr"] > 0
+    md = (tmp_path / "cpu_preset.md").read_text()
+    assert "| a |" in md and "Δ constant" in md
+    assert cpu_preset.main(argv[:4] + ["--variant", "nope"]) == 2  # one line, not a traceback
