@@ -1,7 +1,8 @@
 """Where one training step's time goes: a torch.profiler trace of the training loop's steps.
 
     python -m benchmarks.profile_step --scene DIR [--backend ngp] [--preset fast] \
-        [--warmup 200] [--steps 50] [--device cuda] [--out OUT]
+        [--warmup 200] [--steps 50] [--device cuda] [--variant NAME[=JSON]] [--threads N] \
+        [--out OUT]
 
 The trainer runs with one hook (`ProfileSteps`): `--warmup` steps first (kernel compilation,
 occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plainly and
@@ -13,7 +14,11 @@ occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plain
   launched it (Warp kernels by their Python names, cuBLAS GEMMs as "mlp", the fused Adam as
   "optimizer", the remaining PyTorch element-wise and reduction kernels as "torch other"),
   and the device's busy share of the wall time (kernel time / wall; low means the step waits on
-  the host: launches, Python, a sync).
+  the host: launches, Python, a sync);
+- CPU only: the ops with the most self CPU time (Warp kernels appear as their autograd
+  functions, e.g. _HashGridEncodeBackward).
+`--variant` trains one of benchmarks.cpu_preset's variants instead of the preset's defaults
+(e.g. `before`: the GPU sizes and dense Adam, ngp on a CPU before issue #18).
 
 Outputs in OUT: profile_step.json and profile_step.md (the table for benchmarks/RESULTS.md).
 """
@@ -29,6 +34,7 @@ from typing import Any
 import torch
 
 from benchmarks.cli import benchmark_main
+from benchmarks.cpu_preset import build, parse_variant
 from benchmarks.curve import load_scene_dir, make_config
 from benchmarks.session import jsonable, session_info
 from fastenerf.backends import BACKEND_NAMES
@@ -211,7 +217,15 @@ def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> di
         "top_kernels_ms": {
             k[:120]: v / steps for k, v in sorted(top.items(), key=lambda kv: -kv[1])[:15]
         },
+        "top_cpu_ops_ms": {} if dev.type == "cuda" else _top_cpu_ops(prof, steps),
     }
+
+
+def _top_cpu_ops(prof, steps: int, n: int = 12) -> dict[str, float]:
+    """The `n` ops with the most self CPU time, ms per step (named ranges left out)."""
+    ops = [ev for ev in prof.key_averages() if ev.key not in STAGES and "#" not in ev.key]
+    ops.sort(key=lambda ev: -ev.self_cpu_time_total)
+    return {ev.key[:80]: ev.self_cpu_time_total / 1e3 / steps for ev in ops[:n]}
 
 
 def markdown(res: dict) -> str:
@@ -245,6 +259,9 @@ def markdown(res: dict) -> str:
     for k, v in res["host_ms"].items():
         indent = "  ↳ " if k in ("march", "field", "composite") else ""
         lines.append(f"| {indent}{k} | {v:.2f} |")
+    if res.get("top_cpu_ops_ms"):
+        lines += ["", "| op (self CPU time) | ms/step |", "|---|---:|"]
+        lines += [f"| {k} | {v:.2f} |" for k, v in res["top_cpu_ops_ms"].items()]
     if res["device_ms"]:
         lines += ["", "| device kernels by op | ms/step | share |", "|---|---:|---:|"]
         tot = sum(res["device_ms"].values()) or 1.0
@@ -263,11 +280,18 @@ def run(args: argparse.Namespace) -> int:
     if args.steps < 1 or args.warmup < 0:
         raise InputError("--steps must be >= 1 and --warmup >= 0")
     device = resolve_device(args.device)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     scene = load_scene_dir(args.scene)
-    cfg = make_config(args.backend, args.preset, 300.0, str(device))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    trainer = Trainer(scene, cfg, out / "run")
+    if args.variant:
+        name, spec = parse_variant(args.variant)
+        trainer = build(scene, "run", spec, 300.0, out, str(device))
+        args.backend = f"{spec.get('backend', 'ngp')}, variant {name}"
+    else:
+        cfg = make_config(args.backend, args.preset, 300.0, str(device))
+        trainer = Trainer(scene, cfg, out / "run")
     hook = ProfileSteps(args.warmup, args.steps, progress=not args.quiet)
     trainer.run(hooks=[hook])
     if hook.result is None:
@@ -303,6 +327,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="runs/bench/profile_step")
     p.add_argument("--commit", default=None, help="git commit to record")
     p.add_argument("--quiet", action="store_true")
+    p.add_argument(
+        "--variant",
+        metavar="NAME[=JSON]",
+        help="a benchmarks.cpu_preset variant (built-in name or NAME=JSON) instead of --preset",
+    )
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:

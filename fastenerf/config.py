@@ -20,6 +20,7 @@ from typing import Any, Literal
 
 from . import backends
 from .backends import BACKEND_NAMES, get_option, parse_options
+from .cpu_preset import NGP_CPU_RAYS, ngp_cpu_options
 from .errors import InputError
 from .perturb_config import PerturbConfig
 from .schema import check as _check
@@ -312,7 +313,8 @@ class TrainConfig:
     with events in their window). Default: 0.1 synthetic, 0.05 real."""
     rays_per_step: int | None = field(default=None, metadata={"min": 1, "max": MAX_RAYS_PER_STEP})
     """Pixels per step, each rendered at the window's start and end. Default: by preset and
-    device (8192 on CUDA, 512 on a CPU; 1024 for eventnerf)."""
+    device (8192 on CUDA, 512 on a CPU, the CPU preset's for ngp on a CPU; 1024 for
+    eventnerf)."""
     windows_per_step: int = field(default=1, metadata={"min": 1, "max": 65536})
     """Windows per step; the pixels are split evenly over them (fast preset: 16)."""
     lr: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
@@ -479,9 +481,13 @@ class TrainConfig:
             c.neg_ratio = 0.05 if real else 0.1
         if c.distortion_weight is None:
             c.distortion_weight = 0.0 if real else 1e-4
+        cpu_ngp = c.backend == "ngp" and not str(device).startswith("cuda")
+        if cpu_ngp:  # the CPU preset fills the options left unset (fastenerf.cpu_preset)
+            c.backend_options = ngp_cpu_options(c.backend_options, scene.aabb, scene.cylinder)
         if c.rays_per_step is None:
             # ~256k samples per step on a GPU (DESIGN §4); a 2-core CPU needs small batches.
             c.rays_per_step = 8192 if str(device).startswith("cuda") else 512
+            c.rays_per_step = NGP_CPU_RAYS if cpu_ngp else c.rays_per_step
             c.rays_per_step = max(c.rays_per_step, c.windows_per_step)
         b = backends.backend(c.backend)
         if c.lr is None:

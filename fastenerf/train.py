@@ -32,6 +32,7 @@ from .hooks import Hook, default_hooks
 from .io import write_json
 from .losses import total_loss
 from .memory import check_ray_batch
+from .optim import make_adam
 from .perturb import perturb_training_data
 from .run import (
     CHECKPOINT,
@@ -181,16 +182,21 @@ class Trainer:
         self.field.observe_cameras(self.rig.intrinsics.K, c2w, sc.width, sc.height, sc.near)
 
     def _make_optimizer(self) -> torch.optim.Optimizer:
+        """Adam (fastenerf.optim.make_adam): fused on CUDA; on a CPU the hash table's rows are
+        updated only where a step's backward wrote them (RowSparseAdam)."""
         groups = self.field.param_groups()
         for g in groups:
             g.setdefault("lr", self.cfg.lr)
             g["lr_scale"] = g["lr"] / self.cfg.lr
-        return torch.optim.Adam(
+        table = getattr(self.field, "table", None)  # the ngp field's hash table
+        return make_adam(
             groups,
+            self.device,
             lr=self.cfg.lr,
             betas=tuple(self.cfg.adam_betas),
             eps=self.cfg.adam_eps,
-            fused=self.device.type == "cuda" or self.cfg.step_mode == "device",
+            row_sparse=[table] if isinstance(table, torch.nn.Parameter) else [],
+            fused=self.cfg.step_mode == "device",  # its found_inf skips on the device
         )
 
     def set_step_mode(self, mode: str) -> str:

@@ -42,6 +42,7 @@ import warp as wp
 
 from .common import device_of, fast_view, init, launch
 from .gridconfig import HashGridConfig
+from .rows import tracker_of
 
 init()
 
@@ -350,6 +351,41 @@ def _kernels(
 
 
 @functools.cache
+def _tracked_backward(F: int):
+    """backward(table) that also marks every row it writes in a `RowTracker`'s mask: the
+    row-sparse optimiser's input (kernels/rows.py). One thread per (level, point), level the
+    slow index; plain atomics (the CPU's scatter; correct on CUDA too)."""
+    vec = wp.types.vector(length=F, dtype=wp.float32)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def backward_table_tracked(
+        x: wp.array(dtype=wp.vec3),
+        grad: wp.array2d(dtype=float),
+        levels: wp.array(dtype=wp.vec4i),
+        n: int,
+        grad_table: wp.array(dtype=vec),
+        mask: wp.array(dtype=wp.uint8),
+    ):
+        tid = wp.tid()
+        lv = tid // n
+        i = tid - lv * n
+        level = levels[lv]
+        g = vec()
+        for k in range(F):
+            g[k] = grad[i, lv * F + k]
+        c, f = cell_of(x[i], level[0])
+        for k in range(8):
+            dx = k & 1
+            dy = (k >> 1) & 1
+            dz = (k >> 2) & 1
+            row = level[1] + grid_index(c[0] + dx, c[1] + dy, c[2] + dz, level)
+            wp.atomic_add(grad_table, row, corner_weight(f, dx, dy, dz) * g)
+            mask[row] = wp.uint8(1)
+
+    return backward_table_tracked
+
+
+@functools.cache
 def _vec(F: int):
     return wp.types.vector(length=F, dtype=wp.float32)
 
@@ -433,6 +469,25 @@ def _launch_forward(x, table, cfg: HashGridConfig, variant: _Variant, storage: t
     return storage.t() if variant.feature_major else storage
 
 
+def _launch_tracked(x, g_wp, cfg: HashGridConfig, grad_table, tracker) -> None:
+    """Scatter the gradient into grad_table and mark the rows written in `tracker`."""
+    n, F = x.shape[0], cfg.n_features
+    launch(
+        _tracked_backward(F),
+        n * cfg.n_levels,
+        x,
+        [
+            fast_view(x, wp.vec3),
+            g_wp,
+            _levels_wp(cfg, device_of(x)),
+            n,
+            fast_view(grad_table, _vec(F)),
+            tracker.mask,
+        ],
+    )
+    tracker.passes += 1
+
+
 class _HashGridEncode(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, table, cfg, variant):
@@ -441,6 +496,7 @@ class _HashGridEncode(torch.autograd.Function):
         )
         ctx.save_for_backward(x, table)
         ctx.cfg, ctx.variant = cfg, variant
+        ctx.tracker = tracker_of(table)  # the rows the backward writes go to its tracker
         return out
 
     @staticmethod
@@ -459,7 +515,9 @@ class _HashGridEncode(torch.autograd.Function):
         grad_x = grad_table = None
         if ctx.needs_input_grad[1]:
             grad_table = torch.zeros_like(table)
-            if n:
+            if n and ctx.tracker is not None:
+                _launch_tracked(x, g_wp, cfg, grad_table, ctx.tracker)
+            elif n:
                 launch(
                     bwd_table,
                     variant.backward_threads(n, L),

@@ -1,0 +1,124 @@
+"""The ngp CPU preset: applied on a CPU to the options left unset, never on a GPU."""
+
+import math
+
+import pytest
+
+from fastenerf.backends import get_option, parse_options
+from fastenerf.config import (
+    CylinderConfig,
+    IntrinsicsConfig,
+    SceneConfig,
+    TrainConfig,
+    TrajectoryConfig,
+    train_preset,
+)
+from fastenerf.cpu_preset import (
+    NGP_CPU_DIAGONAL_STEPS,
+    NGP_CPU_OPTIONS,
+    NGP_CPU_RAYS,
+    cpu_dt_min,
+)
+
+
+def scene(cylinder=None) -> SceneConfig:
+    return SceneConfig(
+        "s",
+        64,
+        48,
+        IntrinsicsConfig(50, 50, 32, 24),
+        TrajectoryConfig(),
+        aabb=[-1.0, -0.5, -1.0, 1.0, 0.5, 1.0],
+        cylinder=cylinder,
+    )
+
+
+def test_cpu_fills_unset_ngp_options_and_rays():
+    c = train_preset("fast", "ngp").resolved(scene(), "cpu")
+    for key, value in NGP_CPU_OPTIONS.items():
+        assert get_option("ngp", c.backend_options, key) == value
+    assert get_option("ngp", c.backend_options, "dt_min") == pytest.approx(
+        math.sqrt(3) * 2.0 / NGP_CPU_DIAGONAL_STEPS
+    )
+    assert c.rays_per_step == NGP_CPU_RAYS
+    opts = parse_options("ngp", c.backend_options)  # valid options, as the field reads them
+    assert opts.encoding.n_levels == NGP_CPU_OPTIONS["n_levels"]
+    assert c.resolved(scene(), "cpu").backend_options == c.backend_options  # idempotent
+
+
+def test_user_options_win_flat_or_nested():
+    cfg = train_preset(
+        "fast",
+        "ngp",
+        rays_per_step=64,
+        backend_options={"encoding": {"n_levels": 12}, "grid_resolution": 64},
+    )
+    c = cfg.resolved(scene(), "cpu")
+    assert get_option("ngp", c.backend_options, "n_levels") == 12
+    assert get_option("ngp", c.backend_options, "grid_resolution") == 64
+    assert get_option("ngp", c.backend_options, "log2_table_size") == 14
+    assert c.rays_per_step == 64
+    parse_options("ngp", c.backend_options)  # no key given twice
+
+
+def test_gpu_and_vanilla_untouched():
+    c = train_preset("fast", "ngp").resolved(scene(), "cuda:0")
+    assert get_option("ngp", c.backend_options, "log2_table_size") is None
+    assert c.rays_per_step == 8192
+    v = TrainConfig(backend="vanilla").resolved(scene(), "cpu")
+    assert v.backend_options == {} and v.rays_per_step == 512
+
+
+def test_dt_min_follows_the_clipped_box():
+    cyl = CylinderConfig(0.25, -0.35, 0.15)
+    assert cpu_dt_min([-1, -1, -1, 1, 1, 1], cyl) == pytest.approx(
+        math.sqrt(3) * 0.5 / NGP_CPU_DIAGONAL_STEPS
+    )
+    assert cpu_dt_min([-1, -1, -1, 1, 1, 1]) == pytest.approx(
+        math.sqrt(3) * 2 / NGP_CPU_DIAGONAL_STEPS
+    )
+
+
+def test_baton_gives_turns_in_a_ring():
+    import threading
+
+    from benchmarks.cpu_preset import Baton
+
+    baton, order = Baton(3), []
+
+    def worker(i, steps):
+        baton.wait(i)
+        for s in range(steps):
+            order.append(i)
+            if s < steps - 1:
+                baton.pass_on(i)
+                baton.wait(i)
+        baton.leave(i)
+
+    threads = [threading.Thread(target=worker, args=(i, n)) for i, n in enumerate((2, 4, 3))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=10)
+    assert order == [0, 1, 2, 0, 1, 2, 1, 2, 1]
+
+
+def test_side_by_side_benchmark_on_the_tiny_scene(tiny_scene, tmp_path):
+    """Two variants race on the tiny scene; each trains its own seconds and is scored."""
+    import json
+
+    from benchmarks import cpu_preset
+
+    tiny = '{"backend_options": {"log2_table_size": 10, "n_levels": 4, "max_resolution": 32}}'
+    argv = ["--scene", str(tiny_scene), "--seconds", "1.5", "--out", str(tmp_path)]
+    argv += ["--variant", f"a={tiny}", "--variant", "b=" + tiny[:-1] + ', "optimizer": "dense"}']
+    assert cpu_preset.main(argv) == 0
+    res = json.loads((tmp_path / "cpu_preset.json").read_text())
+    rows = {r["variant"]: r for r in res["rows"]}
+    assert set(rows) == {"a", "b"}
+    for r in rows.values():
+        assert r["steps"] > 0 and r["train_seconds"] >= 1.5
+        assert r["psnr"] > 0 and r["constant_psnr"] > 0
+    md = (tmp_path / "cpu_preset.md").read_text()
+    assert "| a |" in md and "Δ constant" in md
+    assert cpu_preset.main(argv[:4] + ["--variant", "nope"]) == 2  # one line, not a traceback
