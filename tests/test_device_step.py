@@ -184,3 +184,31 @@ def test_sample_capacity_follows_the_want_with_headroom():
         cap.observe(torch.tensor([want], dtype=torch.int32))
         cap.refresh()
         assert cap.capacity == capacity, (want, cap.capacity)
+
+
+@pytest.mark.parametrize("backend", ["ngp", "vanilla"])
+def test_a_non_finite_ray_skips_the_step_without_a_host_check(scene, tmp_path, backend):
+    """Training renders do not read the rays on the host (a sync per step): a NaN ray makes
+    its pixel NaN instead, so the loss is NaN and the guard skips the update."""
+    trainer = make(scene, tmp_path / "run", "device", backend, steps=3)
+    before = weights(trainer)
+    sample = trainer.sampler.sample
+
+    def poisoned():
+        batch = sample()
+        batch.rays_o[3] = float("nan")
+        batch.rays_d[5, 1] = float("inf")
+        return batch
+
+    trainer.sampler.sample = poisoned
+    stats = trainer.step()
+    trainer.flush_stats()
+    assert math.isnan(stats["loss"]) and trainer.skipped_steps == 1
+    after = weights(trainer)
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    # outside training the rays are still checked, with one clear line
+    from fastenerf.errors import InputError
+
+    bad = torch.full((2, 3), float("nan"))
+    with pytest.raises(InputError, match="NaN or inf"):
+        trainer.field.render(bad, bad, near=0.0, background=None, train=False)

@@ -90,11 +90,18 @@ class Field(torch.nn.Module):
         return {}
 
 
-def check_points(name: str, v: torch.Tensor, where: str) -> None:
+def check_points(name: str, v: torch.Tensor, where: str, finite: bool = True) -> None:
     """Reject what would corrupt the weights: a NaN point reaches the hash-grid backward as a
-    NaN gradient, and one NaN row poisons Adam's moments for good (DESIGN §5)."""
+    NaN gradient, and one NaN row poisons Adam's moments for good (DESIGN §5).
+
+    finite: also read every value on the host (a device sync). A training step passes False:
+    its rays come from validated poses, and a non-finite one makes the loss non-finite, which
+    the step's guard skips before it reaches the weights.
+    """
     if v.ndim != 2 or v.shape[-1] != 3:
         raise InputError(f"{where}: {name} must be (N, 3), got {tuple(v.shape)}")
+    if not finite:
+        return
     bad = ~torch.isfinite(v).all(-1)
     if bool(bad.any()):
         raise InputError(

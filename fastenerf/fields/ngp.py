@@ -181,7 +181,9 @@ class NGPField(Field):
     # -- field ---------------------------------------------------------------------------
     def _normalise(self, x: torch.Tensor) -> torch.Tensor:
         lo, hi = self.aabb[:3], self.aabb[3:]
-        return ((x - lo) / (hi - lo)).clamp(0.0, 1.0).contiguous()
+        # a non-finite point becomes the box's centre: the kernels index memory with it
+        u = torch.nan_to_num((x - lo) / (hi - lo), nan=0.5, posinf=1.0, neginf=0.0)
+        return u.clamp(0.0, 1.0).contiguous()
 
     def _geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3)."""
@@ -217,8 +219,8 @@ class NGPField(Field):
         return self._radiance(self._geometry(x)[1], d)
 
     def render(self, rays_o, rays_d, *, near: float, background, train: bool) -> RenderOutput:
-        check_points("rays_o", rays_o, "NGPField.render")
-        check_points("rays_d", rays_d, "NGPField.render")
+        check_points("rays_o", rays_o, "NGPField.render", finite=not train)
+        check_points("rays_d", rays_d, "NGPField.render", finite=not train)
         if rays_o.shape != rays_d.shape:
             raise InputError(
                 f"NGPField.render: rays_o {tuple(rays_o.shape)} and rays_d "
@@ -226,6 +228,9 @@ class NGPField(Field):
             )
         rays_o = rays_o.float().contiguous()
         rays_d = rays_d.float().contiguous()
+        bad = None
+        if train:  # checked on the device, not read: see check_points
+            rays_o, rays_d, bad = _park_non_finite(rays_o, rays_d)
         with torch.no_grad(), record_function("march"):
             fixed = self._march(rays_o, rays_d, near, train)
         packed_info, t_starts, t_ends, ray_idx = fixed[:4]
@@ -238,6 +243,8 @@ class NGPField(Field):
             rgb = self._radiance(geo, rays_d[ri])
         with record_function("composite"):
             out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
+        if bad is not None:  # a non-finite ray's pixel is NaN, so the step is skipped
+            out["rgb"] = torch.where(bad[:, None], float("nan"), out["rgb"])
         res: RenderOutput = {
             "rgb": out["rgb"],
             "depth": out["depth"],
@@ -334,6 +341,15 @@ class NGPField(Field):
             height,
             near,
         )
+
+
+def _park_non_finite(rays_o: torch.Tensor, rays_d: torch.Tensor):
+    """Rays with a NaN or inf value replaced by a harmless one (the kernels index memory with
+    them); returns (rays_o, rays_d, bad (R,) bool), no host read."""
+    bad = ~(torch.isfinite(rays_o).all(-1) & torch.isfinite(rays_d).all(-1))
+    rays_o = torch.where(bad[:, None], torch.zeros_like(rays_o), rays_o)
+    rays_d = torch.where(bad[:, None], torch.ones_like(rays_d) / math.sqrt(3.0), rays_d)
+    return rays_o.contiguous(), rays_d.contiguous(), bad
 
 
 def build(scene: SceneConfig, cfg) -> NGPField:

@@ -275,8 +275,13 @@ class VanillaField(Field):
         train: bool,
     ) -> RenderOutput:
         """Volume-render rays (R, 3) each; adds `rgb_coarse` (R, 3) for the coarse-level loss."""
-        check_points("rays_o", rays_o, "VanillaField.render")
-        check_points("rays_d", rays_d, "VanillaField.render")
+        check_points("rays_o", rays_o, "VanillaField.render", finite=not train)
+        check_points("rays_d", rays_d, "VanillaField.render", finite=not train)
+        bad = None
+        if train:  # checked on the device, not read: a bad ray is parked, its pixel made NaN
+            bad = ~(torch.isfinite(rays_o).all(-1) & torch.isfinite(rays_d).all(-1))[:, None]
+            rays_o = torch.where(bad, torch.zeros_like(rays_o), rays_o)
+            rays_d = torch.where(bad, torch.ones_like(rays_d) / 3**0.5, rays_d)
         n_rays = rays_o.shape[0]
         t_near, t_far = ray_aabb(rays_o, rays_d, self.aabb, near)
         hit = torch.isfinite(t_near)
@@ -320,6 +325,10 @@ class VanillaField(Field):
                 fine["weights"], (t_s + 0.5 * delta - t_near[:, None]) / s, delta / s
             ).mean()
         out["n_samples"] = n_rays * (n_c + (self.n_fine + n_c if self.fine is not None else 0))
+        if bad is not None:  # the step's loss is then NaN, and the step is skipped
+            for k in ("rgb", "rgb_coarse"):
+                if k in out:
+                    out[k] = torch.where(bad, float("nan"), out[k])
         return out
 
 
