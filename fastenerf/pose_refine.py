@@ -139,25 +139,32 @@ class RowAdam(torch.optim.Optimizer):
 
     @torch.no_grad()
     def step(self, rows: torch.Tensor | None = None, closure=None):  # noqa: D102
-        """rows: (G,) bool, the rows to step (None: every row with a gradient)."""
+        """rows: (G,) bool, the rows to step (None: every row with a gradient).
+
+        Every row is computed and the unseen ones are kept by a select: no boolean indexing,
+        so nothing waits for the device (the rows are few, the arithmetic is cheap).
+        """
         for group in self.param_groups:
             b1, b2 = group["betas"]
             for p in group["params"]:
                 if p.grad is None:
                     continue
                 seen = p.grad.ne(0).any(-1) if rows is None else rows.to(p.device)
-                if not bool(seen.any()):
-                    continue
                 st = self.state[p]
                 if not st:
                     st["exp_avg"] = torch.zeros_like(p)
                     st["exp_avg_sq"] = torch.zeros_like(p)
                     st["row_steps"] = torch.zeros(p.shape[0], 1, device=p.device)
-                g = p.grad[seen]
-                m = st["exp_avg"][seen].mul_(b1).add_(g, alpha=1 - b1)
-                v = st["exp_avg_sq"][seen].mul_(b2).addcmul_(g, g, value=1 - b2)
-                t = st["row_steps"][seen] + 1
-                st["exp_avg"][seen], st["exp_avg_sq"][seen], st["row_steps"][seen] = m, v, t
-                m_hat, v_hat = m / (1 - b1**t), v / (1 - b2**t)
-                p[seen] -= group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
+                s = seen[:, None]
+                g = p.grad
+                m = torch.where(s, st["exp_avg"] * b1 + g * (1 - b1), st["exp_avg"])
+                v = torch.where(s, st["exp_avg_sq"] * b2 + g * g * (1 - b2), st["exp_avg_sq"])
+                t = st["row_steps"] + s.to(st["row_steps"].dtype)
+                st["exp_avg"].copy_(m)
+                st["exp_avg_sq"].copy_(v)
+                st["row_steps"].copy_(t)
+                tc = t.clamp_min(1.0)  # unseen rows that never stepped: kept by the select
+                m_hat, v_hat = m / (1 - b1**tc), v / (1 - b2**tc)
+                update = group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
+                p.sub_(torch.where(s, update, torch.zeros_like(update)))
         return None

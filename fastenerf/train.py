@@ -379,6 +379,9 @@ class Trainer:
             self._append_history(st)
         return done
 
+    def _flush_due(self) -> bool:
+        return len(self.pending) + 1 >= STATS_FLUSH_EVERY
+
     def _append_history(self, stats: dict) -> None:
         self.history.append(stats)
         if len(self.history) > HISTORY_MAX:
@@ -436,7 +439,9 @@ class Trainer:
         if "n_samples" in out:
             n = out["n_samples"]
             stats["samples_per_ray"] = (host(n) if torch.is_tensor(n) else n) / n_rays
-        if self.selfcal is not None:
+        # the calibration's estimates are read on the host: every step on the plain path, at
+        # the flush steps on the device-paced one
+        if self.selfcal is not None and (not on_device or self._flush_due()):
             stats.update(self.selfcal.stats())
         if not on_device:
             if self.skipped_steps:

@@ -212,3 +212,18 @@ def test_a_non_finite_ray_skips_the_step_without_a_host_check(scene, tmp_path, b
     bad = torch.full((2, 3), float("nan"))
     with pytest.raises(InputError, match="NaN or inf"):
         trainer.field.render(bad, bad, near=0.0, background=None, train=False)
+
+
+def test_self_calibration_on_the_device_path(scene, tmp_path):
+    """Pose refinement and threshold estimation step with the device-paced trainer; their
+    estimates reach the history at the flush steps, as floats."""
+    trainer = make(
+        scene, tmp_path / "run", "device", steps=20, refine_poses=True, estimate_threshold=True
+    )
+    summary = trainer.run([])
+    assert summary["steps"] == 20 and summary["failure"] is None
+    with_cal = [s for s in trainer.history if "pose_correction_deg" in s]
+    assert with_cal and len(with_cal) < len(trainer.history)
+    for s in trainer.history:
+        assert all(not torch.is_tensor(v) for v in s.values())
+        assert math.isfinite(s["loss"])
