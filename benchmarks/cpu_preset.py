@@ -33,23 +33,30 @@ import torch
 from benchmarks.cli import benchmark_main
 from benchmarks.curve import load_scene_dir, make_config
 from benchmarks.session import jsonable, session_info
+from fastenerf.commands.demo import CPU_TRAIN
 from fastenerf.errors import InputError
 from fastenerf.hooks import Hook, default_hooks
 from fastenerf.io import atomic_path, write_json
 
 EVAL_VIEWS = 10
 
-# The CPU demo's vanilla network (fastenerf.commands.demo.CPU_TRAIN["vanilla"]).
+# The CPU demo's vanilla network and learning rates (`fastenerf demo --backend vanilla`).
+_DEMO_VANILLA = dict(CPU_TRAIN["vanilla"])
 VANILLA_DEMO = {
     "backend": "vanilla",
-    "train": {"lr": 1e-2, "lr_final": 1e-3},
+    "backend_options": _DEMO_VANILLA.pop("backend_options"),
+    "train": _DEMO_VANILLA,
+}
+# ngp at the GPU's sizes, with the 2-core CPU's batch of the time (512 pixels).
+GPU_SIZES = {
+    "train": {"rays_per_step": 512},
     "backend_options": {
-        "depth": 3,
-        "width": 64,
-        "pos_freqs": 6,
-        "dir_freqs": 2,
-        "n_coarse": 16,
-        "n_fine": 16,
+        "log2_table_size": 19,
+        "n_levels": 16,
+        "max_resolution": 2048,
+        "grid_resolution": 128,
+        "dt_min": 0.0025,
+        "hidden": 64,
     },
 }
 # Variants other than "preset" set every key of the CPU preset (fastenerf.cpu_preset), which
@@ -58,18 +65,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the CPU preset (fastenerf.cpu_preset) and the row-sparse Adam: what `train` runs now
     "preset": {},
     # ngp on a CPU before issue #18: the GPU sizes, 512 rays, dense Adam over the whole table
-    "before": {
-        "train": {"rays_per_step": 512},
-        "backend_options": {
-            "log2_table_size": 19,
-            "n_levels": 16,
-            "max_resolution": 2048,
-            "grid_resolution": 128,
-            "dt_min": 0.0025,
-            "hidden": 64,
-        },
-        "optimizer": "dense",
-    },
+    "before": {**GPU_SIZES, "optimizer": "dense"},
     # the CPU demo's ngp options before issue #18 (it trained vanilla instead)
     "before-demo": {
         "train": {"rays_per_step": 512},
@@ -86,17 +82,7 @@ VARIANTS: dict[str, dict[str, Any]] = {
     # the preset with dense torch Adam: the optimiser's share
     "preset-dense": {"optimizer": "dense"},
     # the GPU sizes with today's optimiser (RowSparseAdam: the table is over its threshold)
-    "gpu-sizes": {
-        "train": {"rays_per_step": 512},
-        "backend_options": {
-            "log2_table_size": 19,
-            "n_levels": 16,
-            "max_resolution": 2048,
-            "grid_resolution": 128,
-            "dt_min": 0.0025,
-            "hidden": 64,
-        },
-    },
+    "gpu-sizes": GPU_SIZES,
     "vanilla-demo": VANILLA_DEMO,
 }
 

@@ -59,8 +59,8 @@ def clip_aabb(aabb: Sequence[float], cyl: Cylinder | None) -> list[float]:
     if cyl is None:
         return box
     r, y0, y1 = cylinder_params(cyl)
-    lo = [max(box[0], -r), max(box[1], y0), max(box[2], -r)]
-    hi = [min(box[3], r), min(box[4], y1), min(box[5], r)]
+    clipped = CylinderConfig(r, y0, y1).clip_box(box)
+    lo, hi = clipped[:3], clipped[3:]
     if any(a >= b for a, b in zip(lo, hi, strict=True)):
         raise InputError(f"the clip cylinder (r={r}, y {y0}..{y1}) does not overlap the box {box}")
     return lo + hi

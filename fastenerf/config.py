@@ -117,6 +117,12 @@ class CylinderConfig:
         r = self.radius
         return [-r, self.y_min, -r, r, self.y_max, r]
 
+    def clip_box(self, box) -> list[float]:
+        """The box [xmin, ymin, zmin, xmax, ymax, zmax] shrunk to the cylinder's bounding box
+        (empty where they do not overlap: some min >= its max)."""
+        b, cb = [float(v) for v in box], self.bounding_box()
+        return [max(b[i], cb[i]) for i in range(3)] + [min(b[i], cb[i]) for i in range(3, 6)]
+
 
 # The EventNeRF authors' released real scenes (their `nextnextgen/` configs, DESIGN §9): radius
 # 0.25 and y_max 0.195 for all, y_min and event threshold per scene. Applied when an EventNeRF
@@ -235,12 +241,12 @@ class SceneConfig:
         _check(self.near >= 0, where, "near", "must not be negative")
         if self.cylinder is not None:
             self.cylinder.check(where)
-            box, cb = self.aabb, self.cylinder.bounding_box()
+            c = self.cylinder.clip_box(self.aabb)
             _check(
-                all(max(box[i], cb[i]) < min(box[i + 3], cb[i + 3]) for i in range(3)),
+                all(c[i] < c[i + 3] for i in range(3)),
                 where,
                 "cylinder",
-                f"does not overlap the box {box} (the clip would leave nothing)",
+                f"does not overlap the box {self.aabb} (the clip would leave nothing)",
             )
         return self
 

@@ -32,15 +32,10 @@ NGP_CPU_RAYS = 256
 def cpu_dt_min(aabb, cylinder=None) -> float:
     """The CPU preset's smallest marching step for a scene box (world units).
 
-    aabb: [xmin, ymin, zmin, xmax, ymax, zmax]; cylinder: a clip with `bounding_box()` (the
-    ngp field's box is the box shrunk to it) or None.
+    aabb: [xmin, ymin, zmin, xmax, ymax, zmax]; cylinder: a CylinderConfig (the ngp field's
+    box is the box shrunk to it) or None.
     """
-    box = [float(v) for v in aabb]
-    if cylinder is not None:
-        cb = cylinder.bounding_box()
-        box = [max(box[i], cb[i]) for i in range(3)] + [
-            min(box[i + 3], cb[i + 3]) for i in range(3)
-        ]
+    box = [float(v) for v in aabb] if cylinder is None else cylinder.clip_box(aabb)
     side = max(box[i + 3] - box[i] for i in range(3))
     return math.sqrt(3.0) * side / NGP_CPU_DIAGONAL_STEPS
 

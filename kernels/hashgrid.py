@@ -373,6 +373,8 @@ def _tracked_backward(F: int):
         g = vec()
         for k in range(F):
             g[k] = grad[i, lv * F + k]
+        if wp.length_sq(g) == 0.0:  # as backward_table: nothing to scatter, no row touched
+            return
         c, f = cell_of(x[i], level[0])
         for k in range(8):
             dx = k & 1

@@ -90,6 +90,19 @@ class Field(torch.nn.Module):
         return {}
 
 
+def park_non_finite(rays_o: torch.Tensor, rays_d: torch.Tensor):
+    """Training rays with a NaN or inf value replaced by a harmless one (kernels index memory
+    with them; an MLP's NaN would spread to every weight's gradient), without a host read.
+
+    Returns (rays_o, rays_d, bad (R,) bool); the caller makes the bad rays' pixels NaN, so
+    the step's loss is NaN and the trainer's guard skips it.
+    """
+    bad = ~(torch.isfinite(rays_o).all(-1) & torch.isfinite(rays_d).all(-1))
+    rays_o = torch.where(bad[:, None], torch.zeros_like(rays_o), rays_o)
+    rays_d = torch.where(bad[:, None], torch.full_like(rays_d, 3**-0.5), rays_d)
+    return rays_o.contiguous(), rays_d.contiguous(), bad
+
+
 def check_points(name: str, v: torch.Tensor, where: str, finite: bool = True) -> None:
     """Reject what would corrupt the weights: a NaN point reaches the hash-grid backward as a
     NaN gradient, and one NaN row poisons Adam's moments for good (DESIGN §5).

@@ -29,7 +29,7 @@ from ..kernels.occupancy import OccupancyGrid
 from ..kernels.raymarch import march_rays
 from ..kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
 from ..kernels.sh import sh_encode
-from .base import Field, RenderOutput, check_points
+from .base import Field, RenderOutput, check_points, park_non_finite
 from .capacity import SampleCapacity
 from .level_weights import weight_gradient_only
 
@@ -230,7 +230,7 @@ class NGPField(Field):
         rays_d = rays_d.float().contiguous()
         bad = None
         if train:  # checked on the device, not read: see check_points
-            rays_o, rays_d, bad = _park_non_finite(rays_o, rays_d)
+            rays_o, rays_d, bad = park_non_finite(rays_o, rays_d)
         with torch.no_grad(), record_function("march"):
             fixed = self._march(rays_o, rays_d, near, train)
         packed_info, t_starts, t_ends, ray_idx = fixed[:4]
@@ -341,15 +341,6 @@ class NGPField(Field):
             height,
             near,
         )
-
-
-def _park_non_finite(rays_o: torch.Tensor, rays_d: torch.Tensor):
-    """Rays with a NaN or inf value replaced by a harmless one (the kernels index memory with
-    them); returns (rays_o, rays_d, bad (R,) bool), no host read."""
-    bad = ~(torch.isfinite(rays_o).all(-1) & torch.isfinite(rays_d).all(-1))
-    rays_o = torch.where(bad[:, None], torch.zeros_like(rays_o), rays_o)
-    rays_d = torch.where(bad[:, None], torch.ones_like(rays_d) / math.sqrt(3.0), rays_d)
-    return rays_o.contiguous(), rays_d.contiguous(), bad
 
 
 def build(scene: SceneConfig, cfg) -> NGPField:

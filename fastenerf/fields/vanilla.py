@@ -25,7 +25,7 @@ from ..backends import VanillaOptions, parse_options
 from ..clip import clip_density
 from ..config import CylinderConfig
 from ..errors import InputError
-from .base import Field, RenderOutput, check_points
+from .base import Field, RenderOutput, check_points, park_non_finite
 from .level_weights import weight_gradient_only
 
 
@@ -279,9 +279,7 @@ class VanillaField(Field):
         check_points("rays_d", rays_d, "VanillaField.render", finite=not train)
         bad = None
         if train:  # checked on the device, not read: a bad ray is parked, its pixel made NaN
-            bad = ~(torch.isfinite(rays_o).all(-1) & torch.isfinite(rays_d).all(-1))[:, None]
-            rays_o = torch.where(bad, torch.zeros_like(rays_o), rays_o)
-            rays_d = torch.where(bad, torch.ones_like(rays_d) / 3**0.5, rays_d)
+            rays_o, rays_d, bad = park_non_finite(rays_o, rays_d)
         n_rays = rays_o.shape[0]
         t_near, t_far = ray_aabb(rays_o, rays_d, self.aabb, near)
         hit = torch.isfinite(t_near)
@@ -328,7 +326,7 @@ class VanillaField(Field):
         if bad is not None:  # the step's loss is then NaN, and the step is skipped
             for k in ("rgb", "rgb_coarse"):
                 if k in out:
-                    out[k] = torch.where(bad, float("nan"), out[k])
+                    out[k] = torch.where(bad[:, None], float("nan"), out[k])
         return out
 
 
