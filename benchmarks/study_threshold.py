@@ -46,12 +46,17 @@ from fastenerf.errors import InputError
 from fastenerf.evaluate import make_eval_set
 from fastenerf.hooks import StopOnSignal
 from fastenerf.io import atomic_path, write_json
+from fastenerf.outputs import OutputKind, claim_output
 from fastenerf.run import read_progress, resolve_device
 
 DEFAULT_LEVELS = (0.15, 0.25, 0.4)
 VARIANTS = ("true", "start", "estimate")
 RATIO_TARGET = 0.10  # the ratio's relative error the issue asks for
 PSNR_TARGET = 0.95  # PSNR of the estimate run as a fraction of the true run's
+
+
+# --data holds the level scenes (each checked by its stamp); any folder may take new ones
+DATA = OutputKind("folder of level scenes", True, lambda p: True, replaced_whole=False)
 
 
 def scene_dir(data: Path, scene: str, pos: float) -> Path:
@@ -340,6 +345,7 @@ def run(args) -> int:
     if args.mismatch < 0:
         raise InputError("--mismatch must be >= 0")
     args.out = args.out or f"runs/bench/threshold-{args.scene}"
+    claim_output(args.data, DATA, flag="--data")
     result = run_study(args)
     if not result:
         print(f"made the level scenes in {args.data}")

@@ -228,3 +228,14 @@ def test_threshold_study_simulates_trains_three_ways_and_reports_the_ratio(tmp_p
     # a level folder made with other settings is refused in one line
     bad = [a if a != "0.03" else "0.05" for a in args] + ["--mismatch", "0.05", "--resume"]
     assert cli_main(bad) == 2
+
+
+def test_threshold_study_refuses_a_file_as_its_data_folder(tmp_path, capsys):
+    """--data naming a file: one line, exit 2, the file untouched and nothing simulated."""
+    data = tmp_path / "data"
+    data.write_text("mine")
+    args = ["bench", "study", "threshold", "blocks", "--data", str(data), "--levels", "0.4"]
+    assert cli_main([*args, "--size", "32x24", "--frames", "4", "--make-only"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--data" in err[0] and "is a file" in err[0]
+    assert data.read_text() == "mine"
