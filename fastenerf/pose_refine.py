@@ -95,8 +95,10 @@ class PoseRefiner(nn.Module):
         `render.generate_rays` on the uncorrected rows while δ = 0.
         """
         d = self.corrections()
-        R = self.rotations(d)[pose_idx]
-        o = (self.base[:, :3, 3] + d[:, 3:])[pose_idx]
+        # index_select: its backward adds into the few rows a batch sees by atomics; advanced
+        # indexing's (a sorted index_put) walks each row's thousands of duplicates serially
+        R = self.rotations(d).index_select(0, pose_idx)
+        o = (self.base[:, :3, 3] + d[:, 3:]).index_select(0, pose_idx)
         k = pose_idx.shape[0] // dirs.shape[0]
         rd = torch.einsum("nij,nj->ni", R, dirs.to(R.dtype).repeat(k, 1))
         return o.contiguous(), nn.functional.normalize(rd, dim=-1)
@@ -138,8 +140,9 @@ class RowAdam(torch.optim.Optimizer):
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
 
     @torch.no_grad()
-    def step(self, rows: torch.Tensor | None = None, closure=None):  # noqa: D102
-        """rows: (G,) bool, the rows to step (None: every row with a gradient).
+    def step(self, rows: torch.Tensor | None = None, closure=None, found_inf=None):  # noqa: D102
+        """rows: (G,) bool, the rows to step (None: every row with a gradient); found_inf:
+        optional 0-dim device flag (non-zero: step no row, as torch's fused Adam skips).
 
         Every row is computed and the unseen ones are kept by a select: no boolean indexing,
         so nothing waits for the device (the rows are few, the arithmetic is cheap).
@@ -150,6 +153,8 @@ class RowAdam(torch.optim.Optimizer):
                 if p.grad is None:
                     continue
                 seen = p.grad.ne(0).any(-1) if rows is None else rows.to(p.device)
+                if found_inf is not None:
+                    seen = seen & found_inf.to(p.device).eq(0)
                 st = self.state[p]
                 if not st:
                     st["exp_avg"] = torch.zeros_like(p)

@@ -98,9 +98,14 @@ class SelfCalibration:
             groups.append({"params": params, "lr": cfg.threshold_lr, "name": "thresholds"})
         if not (groups or self.pose_optimizer):
             raise ValueError("SelfCalibration: neither refine_poses nor estimate_threshold is on")
-        # torch's Adam takes no empty list: a placeholder group when row-adam has the poses
+        # torch's Adam takes no empty list: a placeholder group when row-adam has the poses.
+        # Fused where the field's Adam is (the device-paced step): it skips on `found_inf`.
+        fused = torch.device(sampler.device).type == "cuda" or cfg.step_mode == "device"
         self.optimizer = torch.optim.Adam(
-            groups or [{"params": [], "name": "none"}], betas=ADAM_BETAS, eps=ADAM_EPS
+            groups or [{"params": [], "name": "none"}],
+            betas=ADAM_BETAS,
+            eps=ADAM_EPS,
+            fused=fused if groups else None,
         )
         self.skipped_steps = 0  # steps whose gradients were not finite
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
@@ -157,18 +162,30 @@ class SelfCalibration:
         if self.pose_optimizer is not None:
             self.pose_optimizer.zero_grad(set_to_none=True)
 
-    def step(self) -> bool:
-        """One optimiser step unless a gradient is not finite (then none; counted in
-        `skipped_steps`); returns whether it stepped."""
-        grads = [p.grad for g in self.param_groups() for p in g["params"]]
-        grads = [g for g in grads if g is not None]
-        if grads and not bool(torch.stack([torch.isfinite(g).all() for g in grads]).all()):
-            self.skipped_steps += 1
-            self.zero_grad()
-            return False
+    def parameters(self) -> list[torch.nn.Parameter]:
+        """The learnt calibration's parameters (a device-paced step's guard checks them)."""
+        return [p for g in self.param_groups() for p in g["params"]]
+
+    def step(self, found_inf: torch.Tensor | None = None) -> bool:
+        """One optimiser step unless a gradient is not finite; returns whether it stepped.
+
+        found_inf: the device-paced step's 0-dim flag (`device_step.FiniteGuard`, which then
+        also checked these gradients): the skip is decided on the device and this returns
+        True. Without it the host checks (a skip is counted in `skipped_steps`).
+        """
+        if found_inf is not None and self.optimizer.defaults.get("fused") is False:
+            found_inf = None  # an unfused Adam with thresholds cannot skip on the device
+        if found_inf is None:
+            grads = [p.grad for p in self.parameters() if p.grad is not None]
+            if grads and not bool(torch.stack([torch.isfinite(g).all() for g in grads]).all()):
+                self.skipped_steps += 1
+                self.zero_grad()
+                return False
+        elif self.optimizer.defaults.get("fused"):  # None: the placeholder, nothing to skip
+            self.optimizer.found_inf, self.optimizer.grad_scale = found_inf, None
         self.optimizer.step()
         if self.pose_optimizer is not None and self.pose_optimizer.param_groups[0]["lr"] > 0:
-            self.pose_optimizer.step(self._seen)
+            self.pose_optimizer.step(self._seen, found_inf=found_inf)
         if self.thresholds is not None:
             self.thresholds.project()
         return True

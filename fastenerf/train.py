@@ -207,6 +207,8 @@ class Trainer:
         want = mode if mode != "auto" else ("device" if self.device.type == "cuda" else "plain")
         if want == "device" and supports_device_guard(self.optimizer):
             params = [p for g in self.optimizer.param_groups for p in g["params"]]
+            if self.selfcal is not None:  # one flag: a non-finite gradient anywhere skips all
+                params += self.selfcal.parameters()
             self.guard = FiniteGuard(params, self.device)
             self._skipped_before_guard = self.skipped_steps
             self.step_mode = "device"
@@ -359,10 +361,10 @@ class Trainer:
         with record_function("backward"):
             loss.backward()
         with record_function("optimizer"):
-            self.guard.check(loss, self.optimizer)
+            found_inf = self.guard.check(loss, self.optimizer)
             self.optimizer.step()
             if self.selfcal is not None:
-                self.selfcal.step()
+                self.selfcal.step(found_inf)
         return loss.detach()
 
     def flush_stats(self) -> list[dict]:

@@ -492,12 +492,12 @@ def _launch_tracked(x, g_wp, cfg: HashGridConfig, grad_table, tracker) -> None:
 
 class _HashGridEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, table, cfg, variant):
+    def forward(ctx, x, table, cfg, variant, x_grad_weights):
         out = _launch_forward(
             x, table, cfg, variant, _alloc_out(x.shape[0], cfg, variant, x.device)
         )
         ctx.save_for_backward(x, table)
-        ctx.cfg, ctx.variant = cfg, variant
+        ctx.cfg, ctx.variant, ctx.x_grad_weights = cfg, variant, x_grad_weights
         ctx.tracker = tracker_of(table)  # the rows the backward writes go to its tracker
         return out
 
@@ -535,6 +535,8 @@ class _HashGridEncode(torch.autograd.Function):
                 )
         if ctx.needs_input_grad[0]:
             grad_x = torch.empty_like(x)
+            w = ctx.x_grad_weights
+            gx = g if w is None else g * w  # held here: a Warp view does not own its memory
             if n:
                 launch(
                     bwd_x,
@@ -542,24 +544,31 @@ class _HashGridEncode(torch.autograd.Function):
                     x,
                     [
                         fast_view(x, wp.vec3),
-                        g_wp,
+                        g_wp if w is None else fast_view(gx),
                         fast_view(table, vec),
                         _levels_wp(cfg, dev),
                         L,
                         fast_view(grad_x, wp.vec3),
                     ],
                 )
-        return grad_x, grad_table, None, None
+        return grad_x, grad_table, None, None, None
 
 
 def hash_grid_encode(
-    x: torch.Tensor, table: torch.Tensor, cfg: HashGridConfig, _variant: _Variant = DEFAULT_VARIANT
+    x: torch.Tensor,
+    table: torch.Tensor,
+    cfg: HashGridConfig,
+    _variant: _Variant = DEFAULT_VARIANT,
+    x_grad_weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Encode points x: (N, 3) float32 in [0, 1]^3 with table (n_params, F) -> (N, L*F) float32.
 
     Differentiable w.r.t. ``table`` (scatter-add of dL/dfeature) and ``x`` (only computed when
     x.requires_grad). The result is a transposed view of (L*F, N) storage (feature-major, see the
     module docstring): use ``.contiguous()`` before ``.view``. Runs on x's device.
+    x_grad_weights: optional (L*F,) float32 weights of the output columns in the gradient
+    w.r.t. x only (coarse-to-fine on the pose gradient, `fastenerf.fields.level_weights`); the
+    value and the table's gradient are unweighted.
     """
     if x.ndim != 2 or x.shape[1] != 3 or x.dtype != torch.float32:
         raise ValueError(
@@ -574,4 +583,9 @@ def hash_grid_encode(
         raise ValueError(f"hash_grid_encode: x on {x.device} but table on {table.device}")
     if not table.is_contiguous():
         raise ValueError("hash_grid_encode: table must be contiguous")
-    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant)
+    if x_grad_weights is not None and x_grad_weights.shape != (cfg.n_output_dims,):
+        raise ValueError(
+            f"hash_grid_encode: x_grad_weights must be ({cfg.n_output_dims},), "
+            f"got {tuple(x_grad_weights.shape)}"
+        )
+    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, x_grad_weights)

@@ -227,3 +227,49 @@ def test_self_calibration_on_the_device_path(scene, tmp_path):
     for s in trainer.history:
         assert all(not torch.is_tensor(v) for v in s.values())
         assert math.isfinite(s["loss"])
+
+
+def calibration(trainer: Trainer) -> dict[str, torch.Tensor]:
+    sc = trainer.selfcal
+    return {
+        "delta": sc.poses.delta.detach().clone(),
+        **{k: v.detach().clone() for k, v in sc.thresholds.state_dict().items()},
+    }
+
+
+SELFCAL = dict(refine_poses=True, estimate_threshold=True, refine_start=0.0, steps=6)
+
+
+def test_device_path_takes_the_plain_paths_calibration_steps(scene, tmp_path):
+    plain = make(scene, tmp_path / "plain", "plain", **SELFCAL)
+    a = [plain.step()["loss"] for _ in range(6)]
+    device = make(scene, tmp_path / "device", "device", **SELFCAL)
+    for _ in range(6):
+        device.step()
+    device.flush_stats()
+    assert a == [s["loss"] for s in device.history]
+    ca, cb = calibration(plain), calibration(device)
+    assert not torch.equal(ca["delta"], torch.zeros_like(ca["delta"]))  # the poses moved
+    for k in ca:
+        assert torch.equal(ca[k], cb[k]), k
+
+
+def test_device_path_skips_a_non_finite_calibration_gradient(scene, tmp_path):
+    """A NaN reaching only the pose corrections' gradient skips the whole step on the device:
+    field, poses and thresholds keep their values (no host check ran)."""
+    trainer = make(scene, tmp_path / "run", "device", **SELFCAL)
+    trainer.step()
+    forward = trainer._forward
+
+    def nan_pose_grad(batch):
+        out, loss, parts = forward(batch)
+        return out, loss + torch.sqrt(trainer.selfcal.poses.delta.sum() * 0.0), parts
+
+    trainer._forward = nan_pose_grad
+    before, cal = weights(trainer), calibration(trainer)
+    trainer.step()
+    trainer.flush_stats()
+    assert trainer.skipped_steps == 1 and trainer.selfcal.skipped_steps == 0
+    after, cal_after = weights(trainer), calibration(trainer)
+    assert all(torch.equal(before[k], after[k]) for k in before)
+    assert all(torch.equal(cal[k], cal_after[k]) for k in cal)

@@ -241,3 +241,37 @@ def test_benchmark_smoke_cpu():
     assert r["max_abs_err"] < 1e-5
     for k in ("warp_fwd_ms", "warp_bwd_ms", "warp_fwdbwd_ms", "torch_fwdbwd_ms"):
         assert r[k] > 0 and math.isfinite(r[k])
+
+
+def test_x_grad_weights_weight_only_the_position_gradient():
+    """x_grad_weights (coarse-to-fine on the pose gradient): the value and the table's
+    gradient are the unweighted ones; the x-gradient is the float64 reference's for the
+    cotangent times the weights."""
+    cfg = SMALL
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
+    x = random_points(600, cfg, gen)
+    res = torch.tensor(cfg.resolutions, dtype=torch.float64)
+    frac = torch.frac(x.double()[:, None, :] * res[None, :, None])
+    x = x[((frac > 1e-3) & (frac < 1 - 1e-3)).all(2).all(1)]  # away from the kinks
+    table = (torch.rand(cfg.n_params, cfg.n_features, generator=gen) * 2 - 1).float()
+    w = torch.rand(cfg.n_output_dims, generator=gen)
+    w[: cfg.n_features] = 1.0  # a schedule keeps level 0
+    w[-cfg.n_features :] = 0.0  # and cuts the finest
+    g = torch.randn(len(x), cfg.n_output_dims, generator=gen, dtype=torch.float64)
+
+    xt, tt = x.clone().requires_grad_(True), table.clone().requires_grad_(True)
+    enc = hash_grid_encode(xt, tt, cfg, x_grad_weights=w)
+    (enc * g.float()).sum().backward()
+    x64, t64 = x.double().requires_grad_(True), table.double().requires_grad_(True)
+    ref = ref_encode(x64, t64, cfg)
+    torch.testing.assert_close(enc.detach().double(), ref.detach(), atol=2e-5, rtol=0)
+    (ref * g).sum().backward()
+    scale = t64.grad.abs().max().item()
+    torch.testing.assert_close(tt.grad.double(), t64.grad, atol=2e-5 * scale, rtol=1e-5)
+    x64w = x.double().requires_grad_(True)
+    (ref_encode(x64w, table.double(), cfg) * g * w.double()).sum().backward()
+    scale = x64w.grad.abs().max().item()
+    torch.testing.assert_close(xt.grad.double(), x64w.grad, atol=1e-4 * scale, rtol=1e-4)
+    assert not torch.allclose(x64w.grad, x64.grad)  # the weights changed the x-gradient
+    with pytest.raises(ValueError, match="x_grad_weights"):
+        hash_grid_encode(xt, tt, cfg, x_grad_weights=w[:-1])

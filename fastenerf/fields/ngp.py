@@ -31,7 +31,6 @@ from ..kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
 from ..kernels.sh import sh_encode
 from .base import Field, RenderOutput, check_points, park_non_finite
 from .capacity import SampleCapacity
-from .level_weights import weight_gradient_only
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
 # background shows through. On `blocks` (mean box side 1.22; CPU, 116×87, 2048 rays/step, 300
@@ -191,10 +190,9 @@ class NGPField(Field):
         if self.level_weights is not None:
             w = self.level_weights.repeat_interleave(cfg.n_features)
         if w is not None and self.level_weights_mode == "gradient":
-            # coarse-to-fine on the pose gradient only (fields/level_weights.py)
-            feats = hash_grid_encode(xn.detach(), table, cfg)
-            if xn.requires_grad:
-                feats = weight_gradient_only(feats, hash_grid_encode(xn, table.detach(), cfg), w)
+            # coarse-to-fine on the pose gradient only (fields/level_weights.py), in the
+            # encoding's backward: one forward, the x-gradient weighted
+            feats = hash_grid_encode(xn, table, cfg, x_grad_weights=w.float())
         else:
             feats = hash_grid_encode(xn, table, cfg)
             feats = feats if w is None else feats * w
@@ -238,9 +236,12 @@ class NGPField(Field):
         with record_function("field"):
             ri = ray_idx.long()
             t_mid = (0.5 * (t_starts + t_ends))[:, None]
-            x = rays_o[ri] + rays_d[ri] * t_mid
+            # index_select, not rays_o[ri]: its backward (rays learnt by pose refinement)
+            # adds by atomics instead of a sort
+            d = rays_d.index_select(0, ri)
+            x = rays_o.index_select(0, ri) + d * t_mid
             sigma, geo = self._geometry(x)
-            rgb = self._radiance(geo, rays_d[ri])
+            rgb = self._radiance(geo, d)
         with record_function("composite"):
             out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
         if bad is not None:  # a non-finite ray's pixel is NaN, so the step is skipped
