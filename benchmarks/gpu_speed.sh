@@ -11,7 +11,8 @@
 #   profile   one step's profile after (PROFILE_SCENES) and before (blocks): ms/step, the GPU's
 #             busy share, samples per ray, host syncs per step
 #   evt       60 s error-vs-time curves, before then after, on each of SCENES (side by side)
-#   variants  the after tree with each VARIANT (a --set list) on each of SCENES
+#   variants  the after tree with each VARIANT ("NAME:SETS", SETS a comma-separated --set list,
+#             empty for the defaults) on each of SCENES
 # On the lent device machine: start it detached (setsid) and keep a call in flight until
 # "all done" (the machine is handed back 30 s after the last call returns).
 set -u
@@ -71,9 +72,12 @@ if want evt; then
     done
 fi
 if want variants; then
-    for v in $VARIANTS; do
-        name=${v%%:*}; sets=${v#*:}
-        for s in $SCENES; do evt "$ROOT" "$name" "$s" --set ${sets//,/ }; done
+    for s in $SCENES; do  # scene by scene: a cut-short session still has whole pairs
+        for v in $VARIANTS; do
+            name=${v%%:*}; sets=${v#*:}
+            if [ -n "$sets" ]; then evt "$ROOT" "$name" "$s" --set ${sets//,/ }
+            else evt "$ROOT" "$name" "$s"; fi  # "NAME:": the defaults
+        done
     done
 fi
 (cd "$OUT" && tar czf results.tar.gz --exclude='*.pt' progress.log ./*.log ./*/*.json ./*/*.md \

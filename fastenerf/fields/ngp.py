@@ -26,6 +26,7 @@ from ..errors import InputError
 from ..kernels.composite import composite, distortion_loss
 from ..kernels.hashgrid import hash_grid_encode, init_table
 from ..kernels.occupancy import OccupancyGrid
+from ..kernels.ray_points import ray_points
 from ..kernels.raymarch import march_rays
 from ..kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
 from ..kernels.sh import sh_encode
@@ -234,12 +235,8 @@ class NGPField(Field):
         packed_info, t_starts, t_ends, ray_idx = fixed[:4]
         fixed = fixed if len(fixed) > 4 else None
         with record_function("field"):
-            ri = ray_idx.long()
-            t_mid = (0.5 * (t_starts + t_ends))[:, None]
-            # index_select, not rays_o[ri]: its backward (rays learnt by pose refinement)
-            # adds by atomics instead of a sort
-            d = rays_d.index_select(0, ri)
-            x = rays_o.index_select(0, ri) + d * t_mid
+            # per-ray backward: the rays are learnt under pose refinement (kernels/ray_points)
+            x, d = ray_points(rays_o, rays_d, 0.5 * (t_starts + t_ends), ray_idx, packed_info)
             sigma, geo = self._geometry(x)
             rgb = self._radiance(geo, d)
         with record_function("composite"):
