@@ -18,8 +18,9 @@
 #      target of the issue, met or not (`python -m benchmarks.study_refine OUT`)
 # TINY_SET (KEY=VALUE for every run), STUDY_STEPS, TIME_STEPS, EVAL_VIEWS, THR_ARGS (e.g.
 # "--size 48x36 --frames 60") shrink it for a CPU try (DEVICE=cpu).
-# REFINE_SET (extra KEY=VALUE for the refined runs) and EXTRA_VARIANT ("name:KEY=VALUE ...", an
-# additional refined pose study per scene, OUT/study_SCENE_NAME) compare options in one session.
+# REFINE_SET (extra KEY=VALUE for the refined runs) and EXTRA_VARIANTS (space-separated
+# "name:KEY=VALUE,KEY=VALUE", each an additional refined pose study per scene,
+# OUT/study_SCENE_NAME) compare options in one session. THR_LEVELS=none skips the threshold study.
 # On the lent device machine: start it detached (setsid) and keep a call in flight until
 # "all done"; OUT/partial.tgz holds the logs, JSONs and tables so far after every stage.
 # Device time (H200, estimated from the last session's 3000-step studies, 4 side by side):
@@ -27,7 +28,7 @@
 set -u
 DEVICE=${DEVICE:-cuda}; STUDY_STEPS=${STUDY_STEPS:-3000}; STUDY_JOBS=${STUDY_JOBS:-4}
 TIME_STEPS=${TIME_STEPS:-600}; SCENES=${SCENES:-"blocks plant"}; REFINE_SET=${REFINE_SET:-}
-EXTRA_VARIANT=${EXTRA_VARIANT:-}; EVAL_VIEWS=${EVAL_VIEWS:-10}; TINY_SET=${TINY_SET:-}
+EXTRA_VARIANTS=${EXTRA_VARIANTS:-}; EVAL_VIEWS=${EVAL_VIEWS:-10}; TINY_SET=${TINY_SET:-}
 THR_SCENE=${THR_SCENE:-blocks}; THR_LEVELS=${THR_LEVELS:-"0.15 0.25 0.4"}; THR_ARGS=${THR_ARGS:-}
 DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); COMMIT=${3:-unknown}
 PY=${PY:-python3}
@@ -67,8 +68,8 @@ time_run both refine_poses=true estimate_threshold=true $REFINE_SET
 # 2. the studies, STUDY_JOBS at a time
 jobs_list=()
 for s in $SCENES; do jobs_list+=("pose:$s:plain" "pose:$s:refine"); done
-[ -n "$EXTRA_VARIANT" ] && for s in $SCENES; do jobs_list+=("pose:$s:${EXTRA_VARIANT%%:*}"); done
-for lv in $THR_LEVELS; do jobs_list+=("thr:$lv"); done
+for v in $EXTRA_VARIANTS; do for s in $SCENES; do jobs_list+=("pose:$s:$v"); done; done
+[ "$THR_LEVELS" = none ] || for lv in $THR_LEVELS; do jobs_list+=("thr:$lv"); done
 run_job() {
     local kind=${1%%:*} rest=${1#*:}
     if [ "$kind" = thr ]; then
@@ -82,7 +83,7 @@ run_job() {
     case $v in
         plain) sets=($TINY_SET) ;;
         refine) sets=(refine_poses=true $REFINE_SET $TINY_SET) ;;
-        *) sets=(refine_poses=true ${EXTRA_VARIANT#*:} $TINY_SET) ;;
+        *) local extra=${v#*:}; sets=(refine_poses=true ${extra//,/ } $TINY_SET); v=${v%%:*} ;;
     esac
     bench study pose-error "$DATA/$s" --levels 0 1 2 --out "$OUT/study_${s}_$v" "${common[@]}" \
         ${sets[@]:+--set "${sets[@]}"} > "$OUT/study_${s}_$v.log" 2>&1
@@ -96,7 +97,7 @@ done
 wait
 
 # 3. the tables
-bench study threshold "$THR_SCENE" --data "$DATA/threshold" --levels $THR_LEVELS \
+[ "$THR_LEVELS" = none ] || bench study threshold "$THR_SCENE" --data "$DATA/threshold" --levels $THR_LEVELS \
     --out "$OUT/threshold" --resume "${common[@]}" $THR_ARGS ${TINY_SET:+--set $TINY_SET} \
     > "$OUT/threshold_all.log" 2>&1
 log "threshold table done (rc $?)"

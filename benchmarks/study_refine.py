@@ -4,7 +4,7 @@
 
 Reads, under OUT: study_SCENE_plain/pose-error.json and study_SCENE_refine/pose-error.json
 (the pose study without and with `--refine-poses`, levels 0, 1, 2 degrees; any other
-study_SCENE_NAME folder, an EXTRA_VARIANT, is tabled and plotted beside them),
+study_SCENE_NAME folder, one of EXTRA_VARIANTS, is tabled and plotted beside them),
 time_{plain,refine,threshold,both}/pose-error.json (the step-time runs at 0 degrees, each
 alone on the device) and threshold/threshold.json (the threshold study). Writes
 OUT/refine_summary.json, OUT/refine_summary.md (every target, met or not, with its numbers)

@@ -47,16 +47,17 @@ class MarcherOptions:
     cone_angle: float = field(default=1.0 / 256, metadata={"min": 0.0, "max": 1.0})
     """Step growth with distance: dt = clamp(t · cone_angle, dt_min, dt_max); 0 gives
     constant steps (slower, sharper), 1/256 instant-ngp's (faster). Default: chosen by the
-    training budget (1/256 up to a minute, 0 beyond)."""
+    training budget (0 for a run with a step or time budget, 1/256 for an open-ended one)."""
     dt_min: float | None = field(default=None, metadata={"gt": 0.0, "max": 10.0})
     """Smallest marching step, world units. None: √3/1024 · box size."""
     max_samples: int = field(default=1024, metadata={"min": 1, "max": 65536})
     """Most samples along one ray."""
-    early_cone_angle: float | None = field(default=None, metadata={"min": 0.0, "max": 1.0})
+    early_cone_angle: float | None = field(default=1.0 / 64, metadata={"min": 0.0, "max": 1.0})
     """Cone angle of the first `early_steps` training steps, while the fog of a new field is
-    carved (fewer samples per ray then); None: cone_angle from the start."""
-    early_steps: int = field(default=0, metadata={"min": 0, "max": 10_000_000})
-    """Training steps that march with early_cone_angle."""
+    carved (fewer samples per ray then); None: cone_angle from the start. The default was
+    chosen on every built-in scene and a mesh scene (benchmarks/RESULTS.md, issue #17)."""
+    early_steps: int = field(default=256, metadata={"min": 0, "max": 10_000_000})
+    """Training steps that march with early_cone_angle (the occupancy grid's warm-up)."""
 
 
 @dataclass

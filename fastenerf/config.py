@@ -545,23 +545,16 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
 }
 
 
-# ngp's marching cone angle follows the training budget unless backend_options set it. Measured
-# on `blocks` (H100, benchmarks/RESULTS.md): 1/256 is ahead from 8 to 40 s, level at 60 s and
-# renders 4x faster, but levels off near 29 dB where constant steps (0) reach 32.6 dB in 5 min.
-SHORT_RUN_MINUTES = 1.0
-SHORT_RUN_STEPS = 5000  # ~60 s of ngp steps on an H100 (~14 ms each)
-SHORT_RUN_CONE = 1.0 / 256
+# ngp's marching cone angle follows the training budget unless backend_options set it: constant
+# steps (0) for a run with a budget, the early cone of the first steps included
+# (`NGPOptions.marcher.early_cone_angle`); instant-ngp's 1/256 for an open-ended run (the live
+# viewer), which renders several times faster. Measured in benchmarks/RESULTS.md (issue #17).
+OPEN_ENDED_CONE = 1.0 / 256
 
 
 def ngp_cone_for_budget(minutes: float | None, steps: int | None) -> float:
-    """1/256 for short or open-ended runs (≤ 1 min, ≤ 5000 steps, or no budget), else 0."""
-    if minutes is not None:
-        short = minutes <= SHORT_RUN_MINUTES
-    elif steps is not None:
-        short = steps <= SHORT_RUN_STEPS
-    else:
-        short = True
-    return SHORT_RUN_CONE if short else 0.0
+    """0 for a run with a time or step budget; OPEN_ENDED_CONE for one with neither."""
+    return OPEN_ENDED_CONE if minutes is None and steps is None else 0.0
 
 
 def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConfig:

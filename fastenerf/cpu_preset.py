@@ -17,6 +17,7 @@ from .backends import get_option, set_option
 
 # Backend options (see fastenerf.backends.NGPOptions) of the CPU preset.
 NGP_CPU_OPTIONS: dict[str, Any] = {
+    "early_steps": 0,  # the GPU's early cone was not measured with these sizes
     "log2_table_size": 14,
     "n_levels": 8,
     "max_resolution": 256,

@@ -111,19 +111,21 @@ def test_defaults_fill_optional_keys(scene_config):
 def test_ngp_cone_angle_follows_the_budget_and_is_recorded():
     from fastenerf.config import TrainConfig, ngp_cone_for_budget, train_preset
 
-    assert ngp_cone_for_budget(1.0, None) == 1 / 256  # a minute: cone stepping
-    assert ngp_cone_for_budget(5.0, None) == 0.0  # minutes: constant steps (higher ceiling)
-    assert ngp_cone_for_budget(None, 500_000) == 0.0 and ngp_cone_for_budget(None, 50) == 1 / 256
+    assert ngp_cone_for_budget(1.0, None) == 0.0  # any budget: constant steps
+    assert ngp_cone_for_budget(5.0, None) == 0.0
+    assert ngp_cone_for_budget(None, 500_000) == 0.0 and ngp_cone_for_budget(None, 50) == 0.0
     assert ngp_cone_for_budget(None, None) == 1 / 256  # open-ended (live viewer)
     assert train_preset("fast", "ngp", minutes=5.0).backend_options["cone_angle"] == 0.0
     assert train_preset("eventnerf", "ngp").backend_options["cone_angle"] == 0.0  # 5e5 steps
     short = train_preset("fast", "ngp", minutes=0.5, backend_options={"hidden": 32})
-    assert short.backend_options == {"hidden": 32, "cone_angle": 1 / 256}
+    assert short.backend_options == {"hidden": 32, "cone_angle": 0.0}
+    live = train_preset("fast", "ngp", minutes=None, steps=None)
+    assert live.backend_options["cone_angle"] == 1 / 256
     # an explicit choice wins; vanilla has no such option
     mine = train_preset("fast", "ngp", minutes=5.0, backend_options={"cone_angle": 0.01})
     assert mine.backend_options["cone_angle"] == 0.01
     assert "cone_angle" not in train_preset("fast", "vanilla", minutes=5.0).backend_options
     # it travels in the run's config: a resume with another budget keeps the run's marching
     again = TrainConfig.from_dict(json.loads(json.dumps(short.to_dict())))
-    again.minutes = 10.0
-    assert again.validate().backend_options["cone_angle"] == 1 / 256
+    again.minutes, again.steps = None, None
+    assert again.validate().backend_options["cone_angle"] == 0.0

@@ -484,3 +484,21 @@ def test_new_ngp_field_is_a_fog_of_fixed_optical_depth_at_any_scale():
     opts = parse_options("ngp", {"network": {"density_bias": -1.0}})
     fixed = ngp_mod.NGPField(aabb, opts, device="cpu")
     assert fixed.options.network.density_bias == -1.0
+
+
+def test_ngp_early_cone_marches_fewer_samples_until_early_steps(make):
+    """The default schedule (issue #17): early_cone_angle for the first early_steps training
+    steps, then cone_angle; renders outside training always use cone_angle."""
+    f = make("ngp", cone_angle=0.0, early_cone_angle=1 / 8, early_steps=2, dt_min=0.005)
+    o, d = hit_rays(16)
+
+    def samples(train: bool) -> int:
+        return int(f.render(o, d, near=1e-4, background=BG, train=train)["n_samples"])
+
+    early, evaluation = samples(True), samples(False)
+    f.train_step = 2  # what `update` sets
+    late = samples(True)
+    assert early < 0.6 * late, (early, late)
+    assert abs(evaluation - late) <= 0.05 * late  # eval marches with cone_angle (jitter aside)
+    defaults = parse_options("ngp", {})
+    assert defaults.marcher.early_cone_angle == 1 / 64 and defaults.marcher.early_steps == 256
