@@ -7,8 +7,8 @@
 # views) and the threshold study's scenes in DATA/threshold/ (made on a machine with moderngl,
 # which the GPU machine lacks: `python -m fastenerf.cli bench study threshold blocks --data
 # DATA/threshold --make-only`). Everything lands in OUT:
-#   1. step time, each run alone on the GPU: the pose study's 0° level for TIME_STEPS steps
-#      plain, with --refine-poses, with --estimate-threshold, with both (OUT/time_*)
+#   1. step time, each run alone on the GPU: `benchmarks.profile_step` on blocks (TIME_STEPS
+#      steps after TIME_WARMUP) plain, with refine_poses, estimate_threshold, both (OUT/time_*)
 #   2. STUDY_JOBS processes side by side (the step is host-bound): the pose study at 0, 1, 2°
 #      on each scene without (OUT/study_SCENE_plain) and with refinement
 #      (OUT/study_SCENE_refine), and the threshold study, one process per level, into
@@ -16,7 +16,7 @@
 #      sharing)
 #   3. the threshold study's table over all levels, and OUT/refine_summary.{md,json,png}: every
 #      target of the issue, met or not (`python -m benchmarks.study_refine OUT`)
-# TINY_SET (KEY=VALUE for every run), STUDY_STEPS, TIME_STEPS, EVAL_VIEWS, THR_ARGS (e.g.
+# TINY_SET (KEY=VALUE for every study run), STUDY_STEPS, TIME_STEPS, TIME_WARMUP, EVAL_VIEWS, THR_ARGS (e.g.
 # "--size 48x36 --frames 60") shrink it for a CPU try (DEVICE=cpu).
 # REFINE_SET (extra KEY=VALUE for the refined runs) and EXTRA_VARIANTS (space-separated
 # "name:KEY=VALUE,KEY=VALUE", each an additional refined pose study per scene,
@@ -27,7 +27,7 @@
 # ~1 min step times + ~7 min studies.
 set -u
 DEVICE=${DEVICE:-cuda}; STUDY_STEPS=${STUDY_STEPS:-3000}; STUDY_JOBS=${STUDY_JOBS:-4}
-TIME_STEPS=${TIME_STEPS:-600}; SCENES=${SCENES:-"blocks plant"}; REFINE_SET=${REFINE_SET:-}
+TIME_STEPS=${TIME_STEPS:-30}; TIME_WARMUP=${TIME_WARMUP:-400}; SCENES=${SCENES:-"blocks plant"}; REFINE_SET=${REFINE_SET:-}
 EXTRA_VARIANTS=${EXTRA_VARIANTS:-}; EVAL_VIEWS=${EVAL_VIEWS:-10}; TINY_SET=${TINY_SET:-}
 THR_SCENE=${THR_SCENE:-blocks}; THR_LEVELS=${THR_LEVELS:-"0.15 0.25 0.4"}; THR_ARGS=${THR_ARGS:-}
 DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); COMMIT=${3:-unknown}
@@ -51,19 +51,19 @@ common=(--steps "$STUDY_STEPS" --device "$DEVICE" --commit "$COMMIT" --quiet
         --eval-views "$EVAL_VIEWS")
 log "start: $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1), commit $COMMIT"
 
-# 1. step time, alone (the first run also compiles the kernels: it is the plain one, repeated)
-time_run() {  # NAME KEY=VALUE...
-    local name=$1; shift
-    bench study pose-error "$DATA/blocks" --levels 0 --out "$OUT/time_$name" --steps "$TIME_STEPS" \
-        --device "$DEVICE" --commit "$COMMIT" --quiet --eval-views 1 --eval-scale 0.25 \
-        --set "$@" $TINY_SET > "$OUT/time_$name.log" 2>&1
-    log "time $name done (rc $?)"
+# 1. step time, alone: the steady-state step after TIME_WARMUP steps (benchmarks.profile_step;
+# a short study's train seconds are dominated by start-up and compilation)
+time_run() {  # NAME JSON-TRAIN-OPTIONS
+    $PY -m benchmarks.profile_step --scene "$DATA/blocks" --device "$DEVICE" --quiet \
+        --warmup "$TIME_WARMUP" --steps "$TIME_STEPS" --commit "$COMMIT" --out "$OUT/time_$1" \
+        --variant "$1={\"train\":{$2}}" > "$OUT/time_$1.log" 2>&1
+    log "time $1 done (rc $?)"
+    rm -rf "$OUT/time_$1/run"
 }
-time_run warm seed=0
-time_run plain seed=0
-time_run refine refine_poses=true $REFINE_SET
-time_run threshold estimate_threshold=true
-time_run both refine_poses=true estimate_threshold=true $REFINE_SET
+time_run plain ''
+time_run refine '"refine_poses":true'
+time_run threshold '"estimate_threshold":true'
+time_run both '"refine_poses":true,"estimate_threshold":true'
 
 # 2. the studies, STUDY_JOBS at a time
 jobs_list=()

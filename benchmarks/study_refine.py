@@ -5,8 +5,9 @@
 Reads, under OUT: study_SCENE_plain/pose-error.json and study_SCENE_refine/pose-error.json
 (the pose study without and with `--refine-poses`, levels 0, 1, 2 degrees; any other
 study_SCENE_NAME folder, one of EXTRA_VARIANTS, is tabled and plotted beside them),
-time_{plain,refine,threshold,both}/pose-error.json (the step-time runs at 0 degrees, each
-alone on the device) and threshold/threshold.json (the threshold study). Writes
+time_{plain,refine,threshold,both}/profile_step.json (each option's steady-state step,
+`benchmarks.profile_step`, alone on the device; an older session's time_*/pose-error.json is
+read too) and threshold/threshold.json (the threshold study). Writes
 OUT/refine_summary.json, OUT/refine_summary.md (every target, met or not, with its numbers)
 and OUT/refine_summary.png (PSNR against the pose error, with and without refinement, per
 scene). Missing inputs are reported as missing, not guessed.
@@ -42,7 +43,14 @@ def _psnr(study: dict | None) -> dict[float, float]:
     return {float(r["level"]): r["psnr"] for r in study["levels"] if finite(r["psnr"])}
 
 
-def _ms_per_step(study: dict | None) -> float | None:
+def _ms_per_step(folder: Path) -> float | None:
+    """A timing run's ms/step: the steady-state step of `benchmarks.profile_step` (its
+    profile_step.json), else a short study's train seconds over its steps (pose-error.json,
+    start-up and compilation included: earlier sessions' runs)."""
+    prof = _load(folder / "profile_step.json")
+    if prof and finite(prof.get("wall_ms_unprofiled")):
+        return float(prof["wall_ms_unprofiled"])
+    study = _load(folder / "pose-error.json")
     if not study or not study["levels"]:
         return None
     r = study["levels"][0]
@@ -81,10 +89,7 @@ def summarize(out: Path) -> dict[str, Any]:
                 "met": cost is not None and cost <= COST_DB,
             }
         )
-    times = {
-        k: _ms_per_step(_load(out / f"time_{k}" / "pose-error.json"))
-        for k in ("plain", "refine", "threshold", "both")
-    }
+    times = {k: _ms_per_step(out / f"time_{k}") for k in ("plain", "refine", "threshold", "both")}
     res["step_time"] = times
     for k in ("refine", "threshold", "both"):
         if times["plain"] and times[k]:
