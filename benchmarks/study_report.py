@@ -252,13 +252,19 @@ def _read_tile(out: Path, row: dict) -> np.ndarray | None:
         return None
 
 
+def budget_label(b: dict) -> str:
+    """A study's budget ({"steps": N} or {"s": S}) as "N steps" or "S s"."""
+    return f"{b['steps']} step{'s' * (b['steps'] != 1)}" if "steps" in b else f"{b['s']:g} s"
+
+
+def cpu_prefix(result: dict) -> str:
+    return "CPU numbers — " if result["cpu_numbers"] else ""
+
+
 def title(result: dict) -> str:
-    b = result["budget"]
-    budget = f"{b['steps']} step{'s' * (b['steps'] != 1)}" if "steps" in b else f"{b['s']:g} s"
-    cpu = "CPU numbers — " if result["cpu_numbers"] else ""
     return (
-        f"{cpu}{result['study']} on {result['scene']}, ngp fast, {budget} per level — "
-        + " / ".join(result["machines"])
+        f"{cpu_prefix(result)}{result['study']} on {result['scene']}, ngp fast, "
+        f"{budget_label(result['budget'])} per level — " + " / ".join(result["machines"])
     )
 
 

@@ -41,7 +41,7 @@ from typing import Any
 
 from benchmarks.curve import load_scene_dir, make_config, train_curve
 from benchmarks.session import finite, jsonable, session_info
-from benchmarks.study_report import final_eval
+from benchmarks.study_report import budget_label, cpu_prefix, final_eval
 from fastenerf.errors import InputError
 from fastenerf.evaluate import make_eval_set
 from fastenerf.hooks import StopOnSignal
@@ -269,12 +269,9 @@ def _tile(out: Path, r: dict):
 
 
 def _title(result: dict) -> str:
-    b = result["budget"]
-    budget = f"{b['steps']} steps" if "steps" in b else f"{b['s']:g} s"
-    cpu = "CPU numbers — " if result["cpu_numbers"] else ""
     return (
-        f"{cpu}threshold study on {result['scene']}, ngp fast, {budget} per run — "
-        + (result["machine"])
+        f"{cpu_prefix(result)}threshold study on {result['scene']}, ngp fast, "
+        f"{budget_label(result['budget'])} per run — {result['machine']}"
     )
 
 

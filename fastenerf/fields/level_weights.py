@@ -24,8 +24,9 @@ def weight_gradient_only(
     """Features whose value is `feats_value` and whose gradient w.r.t. the positions is
     w-weighted: feats_value + w·(feats_x − stop_gradient(feats_x)).
 
-    feats_value: (N, C) the features with the gradients to everything but the positions (for
-    a hash grid: encoded at detached positions, so the table gets its full gradient);
+    feats_value: (N, C) the features with the gradients to everything but the positions (the
+    vanilla field's bands; the hash grid weights its position gradient inside its own backward,
+    `hash_grid_encode(x_grad_weights=...)`, one forward instead of two);
     feats_x: (N, C) the same features with the gradient to the positions only (table
     detached); w: (C,) per-column weights in [0, 1].
     """
