@@ -376,11 +376,12 @@ class TrainConfig:
     # Self-calibration (issue #20; fastenerf/self_calibration.py): both off by default.
     refine_poses: bool = False
     """Learn a correction of every training pose (window grid) with the field (own Adam)."""
-    refine_translation: bool = True
-    """Also learn the camera centres' shifts (off: rotations only)."""
+    refine_translation: bool = False
+    """Also learn the camera centres' shifts. Off by default: seen from an orbit, a small shift
+    and a small turn move the image alike, and learning both drifts along that direction."""
     refine_lr: float = 3e-3
     """Pose-correction lr at the start (rad, world units per step); decays to refine_lr_final."""
-    refine_lr_final: float = 1e-5
+    refine_lr_final: float = 1e-6
     """Pose-correction learning rate at the end of the budget."""
     refine_c2f_start: float = 0.1
     """Coarse-to-fine (BARF): budget fraction where the encoding's finer levels (ngp hash
@@ -390,17 +391,25 @@ class TrainConfig:
     refine_c2f_mode: Literal["field", "gradient"] = "gradient"
     """What the coarse-to-fine weights act on: field (BARF: the field sees only the levels on)
     or gradient (the field sees every level; only the pose gradient is level-weighted)."""
-    refine_start: float = 0.1
+    refine_start: float = 0.02
     """Budget fraction before which the poses are not updated (the field first carves its fog);
-    the pose lr then decays from refine_lr to refine_lr_final over the rest of the budget."""
+    the pose lr then decays from refine_lr to refine_lr_final over the rest of the budget. Early,
+    because a field trained long on wrong poses keeps their blur after the poses are right."""
     refine_warmup: float = 0.1
     """Fraction of the pose schedule (after refine_start) over which the pose lr ramps up
     linearly from 0 (0: no ramp)."""
+    refine_windows_per_step: int = field(default=64, metadata={"min": 1, "max": 65536})
+    """While refining poses, at least this many windows per step (at most one per ray): every
+    pose row needs frequent visits to learn its correction in a short run."""
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
     """adam: one Adam over every pose row (a row no batch sees still moves on its momentum);
     row-adam: lazy Adam, each row's moments and step only when a batch sees that row."""
     refine_gauge: Literal["mean", "first", "none"] = "mean"
     """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift)."""
+    refine_decay: float = field(default=30.0, metadata={"min": 0.0, "max": 1e4})
+    """Decoupled decay of the pose corrections towards the given poses (AdamW-style, per unit
+    of correction: a row the batch sees shrinks by pose lr x refine_decay). A prior: what the
+    events hardly constrain (a slow drift along the trajectory) goes back to the given poses."""
     estimate_threshold: bool = False
     """Learn the contrast thresholds' ratio C_pos/C_neg jointly with the field (their product
     stays at scene.json's: the common scale is not observable)."""
@@ -495,6 +504,9 @@ class TrainConfig:
             c.rays_per_step = 8192 if str(device).startswith("cuda") else 512
             c.rays_per_step = NGP_CPU_RAYS if cpu_ngp else c.rays_per_step
             c.rays_per_step = max(c.rays_per_step, c.windows_per_step)
+        if c.refine_poses:
+            more = min(c.refine_windows_per_step, c.rays_per_step)
+            c.windows_per_step = max(c.windows_per_step, more)
         b = backends.backend(c.backend)
         if c.lr is None:
             c.lr = b.lr

@@ -186,9 +186,22 @@ class SelfCalibration:
         self.optimizer.step()
         if self.pose_optimizer is not None and self.pose_optimizer.param_groups[0]["lr"] > 0:
             self.pose_optimizer.step(self._seen, found_inf=found_inf)
+        if self.poses is not None and self.cfg.refine_decay > 0:
+            self._decay_poses(found_inf)
         if self.thresholds is not None:
             self.thresholds.project()
         return True
+
+    @torch.no_grad()
+    def _decay_poses(self, found_inf: torch.Tensor | None) -> None:
+        """Shrink the corrections of the rows this batch saw by lr x refine_decay (decoupled
+        from Adam: its normalised step would scale a prior's pull up to the lr)."""
+        lr = next(g["lr"] for g in self.param_groups() if g["name"] == "poses")
+        seen = self._seen
+        if found_inf is not None:
+            seen = seen & found_inf.to(seen.device).eq(0)
+        rate = min(1.0, lr * self.cfg.refine_decay)
+        self.poses.delta.mul_(1.0 - rate * seen[:, None].to(self.poses.delta.dtype))
 
     # -- reporting ---------------------------------------------------------------------------
 

@@ -133,8 +133,72 @@ def test_row_adam_recovers_a_known_perturbation(ball):  # noqa: F811
         refine_start=0.1,
         refine_warmup=0.1,
         refine_gauge="none",
+        refine_translation=True,
+        refine_decay=0.0,
     )
     cal, _ = calibration_run(cfg, tc, events, bad_rig, 120, true_c2w)
     st = cal.stats()
     assert st["pose_error_deg"] < 0.8, st
     assert st["pose_centre_error"] < 0.05, st
+
+
+def _pose_calibration(**cfg):
+    from test_self_calibration import BallField, ball_scene
+
+    from fastenerf.data.events import EventIndex, EventStream
+    from fastenerf.data.rig import Rig
+    from fastenerf.sampling import RaySampler
+    from fastenerf.self_calibration import SelfCalibration
+
+    scene = ball_scene(n_views=6)
+    stream = EventStream.from_arrays([1, 2], [1, 2], [1000, 2000], [1, -1], 48, 36)
+    index = EventIndex(stream, 0.25, 0.25, t_start=0, t_end=6000, loop=True)
+    windows = WindowSampler(6, 0, 6000, 1, 2)
+    s = RaySampler(
+        index, Rig.from_scene(scene), windows, rays_per_step=8, windows_per_step=2,
+        neg_ratio=0.5, use_kernel=False, with_poses=True,
+    )  # fmt: skip
+    return SelfCalibration(TrainConfig(refine_poses=True, **cfg), s, (0.25, 0.25), BallField())
+
+
+def test_decay_pulls_only_the_rows_seen_back_and_skips_with_the_step():
+    """refine_decay shrinks the corrections of the rows the batch saw by lr x decay (a row's
+    gradient is zero here, so Adam moves nothing), leaves the others, and a non-finite step
+    (found_inf) shrinks nothing."""
+    cal = _pose_calibration(refine_decay=40.0, refine_lr=1e-2, refine_warmup=0.0)
+    cal.before_step(progress=0.5, field_lr_scale=1.0)
+    lr = pose_lr(cal.cfg, 0.5)
+    start = torch.randn_like(cal.poses.delta) * 0.01
+    cal.poses.delta.data.copy_(start)
+    seen = torch.zeros(len(start), dtype=torch.bool)
+    seen[[1, 3]] = True
+    cal._seen = seen
+    cal.poses.delta.grad = torch.zeros_like(start)
+    assert cal.step(found_inf=torch.tensor(1.0))
+    assert torch.equal(cal.poses.delta.detach(), start)  # skipped: nothing moves
+    cal.poses.delta.grad = torch.zeros_like(start)
+    assert cal.step()
+    want = torch.where(seen[:, None], start * (1 - lr * 40.0), start)
+    torch.testing.assert_close(cal.poses.delta.detach(), want, rtol=1e-6, atol=0)
+    off = _pose_calibration(refine_decay=0.0)
+    off.before_step(progress=0.5, field_lr_scale=1.0)
+    off.poses.delta.data.copy_(start)
+    off._seen, off.poses.delta.grad = seen, torch.zeros_like(start)
+    off.step()
+    assert torch.equal(off.poses.delta.detach(), start)
+
+
+def test_refining_raises_the_windows_per_step(scene_config):
+    """With refine_poses a run draws at least refine_windows_per_step windows (no more than
+    its rays); without it, the preset's."""
+    from fastenerf.config import train_preset
+
+    sc = scene_config(64, 48)
+    plain = train_preset("fast", "ngp", rays_per_step=512).resolved(sc)
+    assert plain.windows_per_step == 16
+    ref = train_preset("fast", "ngp", rays_per_step=512, refine_poses=True).resolved(sc)
+    assert ref.windows_per_step == 64
+    few = train_preset("fast", "ngp", rays_per_step=32, refine_poses=True).resolved(sc)
+    assert few.windows_per_step == 32
+    more = train_preset("fast", "ngp", windows_per_step=128, refine_poses=True).resolved(sc)
+    assert more.windows_per_step == 128

@@ -193,6 +193,8 @@ def test_refinement_recovers_a_known_perturbation(ball):
         refine_optimizer="adam",
         refine_start=0.0,
         refine_warmup=0.0,
+        refine_translation=True,
+        refine_decay=0.0,
     )
     cal, _ = calibration_run(cfg, tc, events, bad_rig, 120, true_c2w)
     st = cal.stats()
