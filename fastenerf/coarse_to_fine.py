@@ -15,6 +15,7 @@ the start; `fastenerf.fields.level_weights`).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -24,9 +25,23 @@ from .fields.level_weights import MODES
 
 
 def cosine_window(alpha: float, n: int, device=None) -> torch.Tensor:
-    """(n,) float32 BARF weights of levels 0..n−1 at α (levels below α − 1 are 1)."""
-    x = (alpha - torch.arange(n, dtype=torch.float32, device=device)).clamp(0.0, 1.0)
-    return (1.0 - torch.cos(math.pi * x)) / 2.0
+    """(n,) float32 BARF weights of levels 0..n−1 at α (levels below α − 1 are 1).
+
+    Computed on the host (float64, rounded once) and copied in one transfer: this runs every
+    step of the schedule, where a device computation is ~7 launches. The last few are kept,
+    so a repeated α (before the schedule starts, α stays at its first value) copies nothing;
+    callers must not modify the tensor in place.
+    """
+    return _cosine_window(float(alpha), int(n), torch.device(device or "cpu"))
+
+
+@functools.lru_cache(maxsize=4)
+def _cosine_window(alpha: float, n: int, device: torch.device) -> torch.Tensor:
+    w = [(1.0 - math.cos(math.pi * min(max(alpha - k, 0.0), 1.0))) / 2.0 for k in range(n)]
+    on_cuda = device.type == "cuda"
+    # pinned and non-blocking: a pageable host-to-device copy would wait for the device
+    host = torch.tensor(w, dtype=torch.float32, pin_memory=on_cuda)
+    return host.to(device, non_blocking=on_cuda)
 
 
 def schedule_fraction(progress: float, start: float, end: float) -> float | None:

@@ -20,12 +20,25 @@ first) keep a zero correction and are left out of the gauge.
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import nn
 
+from .render import generate_rays
 from .se3 import relative_angle_deg, so3_exp
 
 GAUGES = ("mean", "first", "none")
+
+
+@functools.cache
+def _pose_rays():
+    """The Warp module `kernels.pose_rays`, or None where Warp cannot be loaded."""
+    try:
+        from .kernels import pose_rays
+    except ImportError:  # pragma: no cover - Warp is a dependency; the torch path remains
+        return None
+    return pose_rays
 
 
 class PoseRefiner(nn.Module):
@@ -34,7 +47,8 @@ class PoseRefiner(nn.Module):
     grid_c2w: (G, 4, 4) the training poses of the grid rows (OpenCV camera-to-world);
     used: (G,) bool, the rows windows use; gauge: one of GAUGES; true_c2w: optional (G, 4, 4)
     exact poses (a study's unperturbed rig), only for the error stats; translation: False
-    learns rotations only (the centres stay).
+    learns rotations only (the centres stay); fused: `rays` runs the Warp kernels
+    (`kernels.pose_rays`) where Warp loads and delta is float32, else the torch reference.
     Parameter `delta`: (G, 6) camera-frame [ω (rad), u (world units)] before the gauge fix.
     """
 
@@ -45,8 +59,10 @@ class PoseRefiner(nn.Module):
         gauge: str = "mean",
         true_c2w: torch.Tensor | None = None,
         translation: bool = True,
+        fused: bool = True,
     ):
         super().__init__()
+        self.fused = fused
         if gauge not in GAUGES:
             raise ValueError(f"PoseRefiner: gauge must be one of {GAUGES}, got {gauge!r}")
         if not bool(used.any()):
@@ -86,14 +102,45 @@ class PoseRefiner(nn.Module):
         out[:, :3, 3] = self.base[:, :3, 3] + d[:, 3:]
         return out
 
-    def rays(self, dirs: torch.Tensor, pose_idx: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def rays(
+        self,
+        dirs: torch.Tensor,
+        pose_idx: torch.Tensor,
+        rays_d: torch.Tensor | None = None,
+        *,
+        fused: bool | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Rays through the corrected poses, differentiable w.r.t. the corrections.
 
         dirs: (B, 3) camera-frame directions of B pixels; pose_idx: (kB,) int64 grid row of
         each ray, the B pixels seen from k poses in turn (k = 2: at t0, then at t1).
+        rays_d: optional (kB, 3) the uncorrected directions (the sampler's batch.rays_d), which
+        the fused path returns as they are on rows without a rotation correction (computed
+        here when not given); fused: the Warp kernels (`kernels.pose_rays`, a few launches)
+        or the torch reference (None: `self.fused`).
         Returns rays_o (kB, 3) world units and rays_d (kB, 3) unit; bit-identical to
         `render.generate_rays` on the uncorrected rows while δ = 0.
         """
+        return self.rays_and_rows(dirs, pose_idx, rays_d, fused=fused)[:2]
+
+    def rays_and_rows(
+        self,
+        dirs: torch.Tensor,
+        pose_idx: torch.Tensor,
+        rays_d: torch.Tensor | None = None,
+        *,
+        fused: bool | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`rays`, and the (G,) bool rows pose_idx holds (what the lazy row Adam steps)."""
+        kernels = _pose_rays() if (self.fused if fused is None else fused) else None
+        if kernels is not None and self.delta.dtype == torch.float32:
+            if rays_d is None:
+                k = pose_idx.shape[0] // max(dirs.shape[0], 1)
+                rays_d = generate_rays(dirs.float().repeat(k, 1), self.base[pose_idx])[1]
+            centre = self.gauge == "mean"
+            return kernels.pose_rays(
+                self.delta, self.base, self.mask, dirs, pose_idx, rays_d, centre
+            )
         d = self.corrections()
         # index_select: its backward adds into the few rows a batch sees by atomics; advanced
         # indexing's (a sorted index_put) walks each row's thousands of duplicates serially
@@ -101,7 +148,9 @@ class PoseRefiner(nn.Module):
         o = (self.base[:, :3, 3] + d[:, 3:]).index_select(0, pose_idx)
         k = pose_idx.shape[0] // dirs.shape[0]
         rd = torch.einsum("nij,nj->ni", R, dirs.to(R.dtype).repeat(k, 1))
-        return o.contiguous(), nn.functional.normalize(rd, dim=-1)
+        seen = torch.zeros(len(self.delta), dtype=torch.bool, device=o.device)
+        seen[pose_idx] = True
+        return o.contiguous(), nn.functional.normalize(rd, dim=-1), seen
 
     @torch.no_grad()
     def stats(self) -> dict[str, float]:
@@ -145,40 +194,61 @@ class RowAdam(torch.optim.Optimizer):
     fix every row gets a tiny gradient (the mean's) that Adam scales up to the lr.
     """
 
-    def __init__(self, params, lr: float, betas=(0.9, 0.999), eps: float = 1e-12):
+    def __init__(
+        self, params, lr: float, betas=(0.9, 0.999), eps: float = 1e-12, fused: bool = True
+    ):
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
+        self.fused = fused  # one Warp launch per float32 parameter (`kernels.pose_rays`)
 
     @torch.no_grad()
     def step(self, rows: torch.Tensor | None = None, closure=None, found_inf=None):  # noqa: D102
         """rows: (G,) bool, the rows to step (None: every row with a gradient); found_inf:
         optional 0-dim device flag (non-zero: step no row, as torch's fused Adam skips).
 
-        Every row is computed and the unseen ones are kept by a select: no boolean indexing,
-        so nothing waits for the device (the rows are few, the arithmetic is cheap).
+        Nothing waits for the device: the fused kernel reads the flags there, and the torch
+        reference computes every row and keeps the unseen ones by a select (no boolean
+        indexing; the rows are few, the arithmetic is cheap).
         """
+        kernels = _pose_rays() if self.fused else None
         for group in self.param_groups:
-            b1, b2 = group["betas"]
             for p in group["params"]:
                 if p.grad is None:
                     continue
-                seen = p.grad.ne(0).any(-1) if rows is None else rows.to(p.device)
-                if found_inf is not None:
-                    seen = seen & found_inf.to(p.device).eq(0)
                 st = self.state[p]
                 if not st:
                     st["exp_avg"] = torch.zeros_like(p)
                     st["exp_avg_sq"] = torch.zeros_like(p)
                     st["row_steps"] = torch.zeros(p.shape[0], 1, device=p.device)
-                s = seen[:, None]
-                g = p.grad
-                m = torch.where(s, st["exp_avg"] * b1 + g * (1 - b1), st["exp_avg"])
-                v = torch.where(s, st["exp_avg_sq"] * b2 + g * g * (1 - b2), st["exp_avg_sq"])
-                t = st["row_steps"] + s.to(st["row_steps"].dtype)
-                st["exp_avg"].copy_(m)
-                st["exp_avg_sq"].copy_(v)
-                st["row_steps"].copy_(t)
-                tc = t.clamp_min(1.0)  # unseen rows that never stepped: kept by the select
-                m_hat, v_hat = m / (1 - b1**tc), v / (1 - b2**tc)
-                update = group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
-                p.sub_(torch.where(s, update, torch.zeros_like(update)))
+                if kernels is not None and _fusable(p, st):
+                    kernels.row_adam(
+                        p, p.grad, st, rows, found_inf, group["lr"], group["betas"], group["eps"]
+                    )
+                else:
+                    self._step_torch(p, st, group, rows, found_inf)
         return None
+
+    @staticmethod
+    def _step_torch(p, st: dict, group: dict, rows, found_inf) -> None:
+        """The reference step of one parameter (any dtype, any device)."""
+        b1, b2 = group["betas"]
+        seen = p.grad.ne(0).any(-1) if rows is None else rows.to(p.device)
+        if found_inf is not None:
+            seen = seen & found_inf.to(p.device).eq(0)
+        s = seen[:, None]
+        g = p.grad
+        m = torch.where(s, st["exp_avg"] * b1 + g * (1 - b1), st["exp_avg"])
+        v = torch.where(s, st["exp_avg_sq"] * b2 + g * g * (1 - b2), st["exp_avg_sq"])
+        t = st["row_steps"] + s.to(st["row_steps"].dtype)
+        st["exp_avg"].copy_(m)
+        st["exp_avg_sq"].copy_(v)
+        st["row_steps"].copy_(t)
+        tc = t.clamp_min(1.0)  # unseen rows that never stepped: kept by the select
+        m_hat, v_hat = m / (1 - b1**tc), v / (1 - b2**tc)
+        update = group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
+        p.sub_(torch.where(s, update, torch.zeros_like(update)))
+
+
+def _fusable(p: torch.Tensor, st: dict) -> bool:
+    """The kernel's case: a (G, k) float32 parameter, gradient and state, contiguous."""
+    ts = (p, p.grad, st["exp_avg"], st["exp_avg_sq"], st["row_steps"])
+    return p.ndim == 2 and all(t.dtype == torch.float32 and t.is_contiguous() for t in ts)

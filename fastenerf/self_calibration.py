@@ -147,9 +147,10 @@ class SelfCalibration:
         if self.poses is not None:
             if batch.pose_idx is None:
                 raise ValueError("SelfCalibration: the sampler was built without with_poses")
-            rays_o, rays_d = self.poses.rays(batch.dirs, batch.pose_idx)
-            self._seen = torch.zeros(len(self.poses.delta), dtype=torch.bool, device=rays_o.device)
-            self._seen[batch.pose_idx] = True
+            # the batch's own rays: what the fused path returns on uncorrected rows (δ = 0)
+            rays_o, rays_d, self._seen = self.poses.rays_and_rows(
+                batch.dirs, batch.pose_idx, batch.rays_d
+            )
         if self.thresholds is not None:
             if batch.parts is None:
                 raise ValueError("SelfCalibration: the sampler was built without with_parts")

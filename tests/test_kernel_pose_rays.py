@@ -1,0 +1,164 @@
+"""kernels/pose_rays: rays through refined poses and their gradient w.r.t. the corrections, and
+the lazy row Adam step, on Warp's CPU backend against the torch reference in float64 (the
+reference `PoseRefiner.rays` path of the same module, converted with `.double()`). Where CUDA
+is available the comparisons run on it too."""
+
+import pytest
+import torch
+
+from fastenerf.kernels.pose_rays import pose_rays
+from fastenerf.pose_refine import PoseRefiner, RowAdam
+from fastenerf.render import generate_rays
+from fastenerf.se3 import so3_exp
+
+G = 9  # grid rows; the last is unused (a loop's twin of the first), row 4 too
+USED = torch.tensor([True] * 4 + [False] + [True] * 3 + [False])
+B = 3 * 40  # pixels: 3 windows of 40 rays, runs longer than a chunk and across chunks
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+def grid(gen: torch.Generator) -> torch.Tensor:
+    """(G, 4, 4) float32 camera-to-world poses: random rotations and centres."""
+    c2w = torch.eye(4, dtype=torch.float64).repeat(G, 1, 1)
+    c2w[:, :3, :3] = so3_exp(torch.randn(G, 3, generator=gen, dtype=torch.float64))
+    c2w[:, :3, 3] = 2.0 * torch.randn(G, 3, generator=gen, dtype=torch.float64)
+    return c2w.float()
+
+
+def sampler_rows(gen: torch.Generator, layout: str) -> torch.Tensor:
+    """(2B,) int64 grid rows: the sampler's layout (each window's rays in a run, all t0 rows
+    then all t1 rows), or any order (shuffled, unused rows included)."""
+    if layout == "runs":
+        used = USED.nonzero()[:, 0]
+        j = used[torch.randint(0, len(used) - 1, (3,), generator=gen)]
+        t0 = j.repeat_interleave(B // 3)
+        t1 = used[torch.searchsorted(used, j) + 1].repeat_interleave(B // 3)
+        return torch.cat([t0, t1])
+    return torch.randint(0, G, (2 * B,), generator=gen)
+
+
+def refiner(gauge: str, translation: bool, scale: float, gen: torch.Generator) -> PoseRefiner:
+    pr = PoseRefiner(grid(gen), USED, gauge, translation=translation)
+    with torch.no_grad():
+        pr.delta.copy_(scale * torch.randn(G, 6, generator=gen))
+    return pr
+
+
+def rays_and_grad(pr: PoseRefiner, dirs, idx, base_d, g_o, g_d, fused: bool):
+    pr.delta.grad = None
+    o, d, seen = pr.rays_and_rows(dirs.to(pr.delta.dtype), idx, base_d, fused=fused)
+    ((o * g_o.to(o.dtype)).sum() + (d * g_d.to(d.dtype)).sum()).backward()
+    return o.detach(), d.detach(), seen, pr.delta.grad.clone()
+
+
+# per-component sizes (rad): exactly zero, tiny, small, moderate, large ones inside the
+# kernel's series (|ω|² < 1) and outside it (closed forms)
+@pytest.mark.parametrize("scale", [0.0, 1e-8, 1e-3, 0.05, 0.3, 1.0])
+@pytest.mark.parametrize("layout", ["runs", "shuffled"])
+@pytest.mark.parametrize("gauge", ["mean", "first", "none"])
+@pytest.mark.parametrize("translation", [True, False])
+@pytest.mark.parametrize("device", DEVICES)
+def test_rays_and_gradients_match_float64(scale, layout, gauge, translation, device):
+    gen = torch.Generator().manual_seed(7)
+    pr = refiner(gauge, translation, scale, gen)
+    idx = sampler_rows(gen, layout)
+    dirs = torch.cat([torch.randn(B, 2, generator=gen) * 0.6, torch.ones(B, 1)], 1)
+    base_d = generate_rays(dirs.repeat(2, 1), pr.base[idx])[1]  # the sampler's rays
+    g_o, g_d = torch.randn(2 * B, 3, generator=gen), torch.randn(2 * B, 3, generator=gen)
+
+    args = [t.to(device) for t in (dirs, idx, base_d, g_o, g_d)]
+    o, d, seen, grad = (t.cpu() for t in rays_and_grad(pr.to(device), *args, fused=True))
+    pr.cpu()
+    ref = PoseRefiner(pr.base, USED, gauge, translation=translation).double()
+    with torch.no_grad():
+        ref.delta.copy_(pr.delta.double())
+    o64, d64, seen64, grad64 = rays_and_grad(ref, dirs, idx, None, g_o, g_d, fused=False)
+
+    assert o.dtype == d.dtype == grad.dtype == torch.float32
+    torch.testing.assert_close(o.double(), o64, atol=1e-6, rtol=0)
+    torch.testing.assert_close(d.double(), d64, atol=5e-7, rtol=0)
+    assert torch.equal(seen, seen64) and torch.equal(seen, torch.isin(torch.arange(G), idx))
+    assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+    torch.testing.assert_close(grad.double(), grad64, atol=1e-6 * grad64.abs().max(), rtol=1e-5)
+    off = ~ref.mask.bool()
+    assert (grad[off] == 0).all()  # unused rows, the fixed first row, shifts when rotations only
+    if scale == 0.0:  # uncorrected rows keep the sampler's rays bit for bit
+        assert torch.equal(d, base_d) and torch.equal(o, pr.base[idx, :3, 3])
+
+
+def test_zero_corrections_give_generate_rays_without_the_samplers_rays():
+    """Without base rays the fused path computes them (`render.generate_rays`), so δ = 0
+    still gives exactly the uncorrected rays; its gradient there is finite."""
+    gen = torch.Generator().manual_seed(1)
+    pr = refiner("mean", True, 0.0, gen)
+    idx = sampler_rows(gen, "runs")
+    dirs = torch.randn(B, 3, generator=gen)
+    o, d = pr.rays(dirs, idx)
+    o_ref, d_ref = generate_rays(dirs.repeat(2, 1), pr.base[idx])
+    assert torch.equal(o, o_ref) and torch.equal(d, d_ref)
+    d.sum().backward()  # the origins unused: their gradient is None
+    assert torch.isfinite(pr.delta.grad).all() and pr.delta.grad[:, :3].abs().sum() > 0
+    assert (pr.delta.grad[:, 3:] == 0).all()
+
+
+def test_fused_matches_the_torch_path_in_float32():
+    gen = torch.Generator().manual_seed(2)
+    pr = refiner("mean", True, 0.02, gen)
+    idx = sampler_rows(gen, "runs")
+    dirs = torch.randn(B, 3, generator=gen)
+    g_o, g_d = torch.randn(2 * B, 3, generator=gen), torch.randn(2 * B, 3, generator=gen)
+    got = rays_and_grad(pr, dirs, idx, None, g_o, g_d, fused=True)
+    want = rays_and_grad(pr, dirs, idx, None, g_o, g_d, fused=False)
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=1e-5)
+
+
+def test_bad_inputs():
+    gen = torch.Generator().manual_seed(0)
+    pr = refiner("mean", True, 0.0, gen)
+    idx = sampler_rows(gen, "runs")
+    dirs = torch.randn(B, 3)
+    args = (pr.delta, pr.base, pr.mask)
+    with pytest.raises(ValueError, match="float32"):
+        pose_rays(pr.delta.double(), pr.base, pr.mask, dirs, idx, torch.zeros(2 * B, 3), True)
+    with pytest.raises(ValueError, match="dirs"):
+        pose_rays(*args, dirs[:7], idx, torch.zeros(2 * B, 3), True)
+    with pytest.raises(ValueError, match="base_d"):
+        pose_rays(*args, dirs, idx, torch.zeros(B, 3), True)
+
+
+# ------------------------------------------------------------------------------ row Adam
+
+
+@pytest.mark.parametrize("with_rows", [True, False])
+@pytest.mark.parametrize("device", DEVICES)
+def test_row_adam_kernel_matches_the_torch_step(with_rows, device):
+    gen = torch.Generator().manual_seed(4)
+    p_k = torch.nn.Parameter(torch.randn(G, 6, generator=gen).to(device))
+    p_t = torch.nn.Parameter(p_k.detach().clone())
+    opt_k = RowAdam([p_k], lr=1e-2, eps=1e-12)
+    opt_t = RowAdam([p_t], lr=1e-2, eps=1e-12, fused=False)
+    for step in range(8):
+        g = torch.randn(G, 6, generator=gen)
+        seen = torch.rand(G, generator=gen) < 0.5
+        if not with_rows:
+            g[~seen] = 0.0  # rows None: the rows with a gradient step
+        found_inf = torch.tensor(float(step == 3), device=device)  # one skipped step
+        g, seen = g.to(device), seen.to(device)
+        for p, opt in ((p_k, opt_k), (p_t, opt_t)):
+            p.grad = g.clone()
+            opt.param_groups[0]["lr"] = 1e-2 * 0.9**step
+            opt.step(seen if with_rows else None, found_inf=found_inf)
+    torch.testing.assert_close(p_k.detach(), p_t.detach(), atol=1e-7, rtol=1e-6)
+    for key in ("exp_avg", "exp_avg_sq", "row_steps"):
+        torch.testing.assert_close(opt_k.state[p_k][key], opt_t.state[p_t][key], atol=0, rtol=1e-6)
+    assert opt_k.state[p_k]["row_steps"].max() <= 7  # the skipped step counted for no row
+
+
+def test_row_adam_kernel_without_found_inf_and_unseen_rows_kept():
+    p = torch.nn.Parameter(torch.zeros(4, 6))
+    opt = RowAdam([p], lr=1e-2)
+    p.grad = torch.ones(4, 6)
+    opt.step(torch.tensor([True, False, True, False]))
+    assert (p[[1, 3]] == 0).all() and torch.allclose(p[[0, 2]], torch.full((2, 6), -1e-2))
+    assert opt.state[p]["row_steps"][:, 0].tolist() == [1, 0, 1, 0]
