@@ -1,11 +1,13 @@
 """One table of a pose-study sweep (`benchmarks/gpu_sweep.sh`): every option at every level.
 
-    python -m benchmarks.study_sweep OUT
+    python -m benchmarks.study_sweep OUT [MORE ...]
 
-Reads OUT/sweep_SCENE_NAME_L<level>/pose-error.json (one level each) and writes
-OUT/sweep.md and OUT/sweep.json: per scene, option and level the PSNR, the remaining mean
-rotation error and centre offset of the refined poses, the steps and train seconds (runs
-side by side: not a step time).
+Reads OUT/sweep_SCENE_NAME_L<level>/pose-error.json (one level each; and MORE sweeps' folders,
+an option's name prefixed with its folder's) and writes OUT/sweep.md and OUT/sweep.json: per
+scene, option and level the PSNR, the remaining mean rotation error and centre offset of the
+refined poses, the steps and train seconds (runs side by side: not a step time); and
+OUT/sweep.png: per scene, each option's PSNR at 1° against its PSNR at 0° (the trade-off:
+refinement must win at 1° without costing at 0°).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from fastenerf.io import atomic_path, write_json
 _DIR = re.compile(r"sweep_(?P<scene>[^_]+)_(?P<name>.+)_L(?P<level>[0-9.]+)$")
 
 
-def collect(out: Path) -> list[dict]:
+def collect(out: Path, prefix: str = "") -> list[dict]:
     """One row per finished run, sorted by scene, option name and level."""
     rows = []
     for d in sorted(out.glob("sweep_*_L*")):
@@ -35,7 +37,7 @@ def collect(out: Path) -> list[dict]:
             rows.append(
                 {
                     "scene": m["scene"],
-                    "name": m["name"],
+                    "name": prefix + m["name"],
                     "level": float(lv["level"]),
                     "psnr": lv.get("psnr"),
                     "pose_error_deg": stats.get("pose_error_deg"),
@@ -65,13 +67,53 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def plot(rows: list[dict], path: Path) -> Path:
+    """PSNR at 1° against PSNR at 0°, one point per option that ran both, a panel per scene."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["scene"] for r in rows})
+    fig, axes = plt.subplots(1, max(1, len(scenes)), figsize=(5.5 * max(1, len(scenes)), 4.6))
+    axes = [axes] if len(scenes) <= 1 else list(axes)
+    for ax, s in zip(axes, scenes, strict=False):
+        by = {}
+        for r in rows:
+            if r["scene"] == s and r["psnr"] is not None:
+                by.setdefault(r["name"], {})[r["level"]] = r["psnr"]
+        pts = [(n, v[0.0], v[1.0]) for n, v in sorted(by.items()) if 0.0 in v and 1.0 in v]
+        for n, x, y in pts:
+            ax.scatter(x, y, s=18)
+            ax.annotate(n, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        lo = min([p[2] for p in pts] + [p[1] for p in pts], default=0.0)
+        hi = max([p[1] for p in pts], default=1.0)
+        ax.plot([lo, hi], [lo, hi], "k:", lw=0.8, label="1° = 0°")
+        ax.plot([lo, hi], [lo - 1, hi - 1], "k--", lw=0.8, label="1° = 0° − 1 dB")
+        for n, v in by.items():  # runs without refinement: the 0° PSNR to keep
+            if n.split(":")[-1] == "plain" and 0.0 in v:
+                ax.axvline(v[0.0], color="grey", lw=0.8, label=f"{n} at 0°")
+        ax.set(title=s, xlabel="PSNR at 0° (dB)", ylabel="PSNR at 1° (dB)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("out", help="the sweep's OUT folder")
+    p.add_argument("out", help="the sweep's OUT folder (the table and plot go here)")
+    p.add_argument("more", nargs="*", help="other sweeps' OUT folders to table beside it")
 
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     rows = collect(out)
+    for m in args.more:
+        rows += collect(Path(m), prefix=f"{Path(m).name}:")
+    rows.sort(key=lambda r: (r["scene"], r["name"], r["level"]))
+    plot(rows, out / "sweep.png")
     write_json(out / "sweep.json", jsonable({"runs": rows}))
     with atomic_path(out / "sweep.md") as tmp:
         tmp.write_text(markdown(rows))

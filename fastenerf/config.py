@@ -377,8 +377,8 @@ class TrainConfig:
     refine_poses: bool = False
     """Learn a correction of every training pose (window grid) with the field (own Adam)."""
     refine_translation: bool = False
-    """Also learn the camera centres' shifts. Off by default: seen from an orbit, a small shift
-    and a small turn move the image alike, and learning both drifts along that direction."""
+    """Also learn the centres' shifts (off: seen from an orbit a small shift and a small turn
+    move the image alike, and learning both drifts along that direction)."""
     refine_lr: float = 3e-3
     """Pose-correction lr at the start (rad, world units per step); decays to refine_lr_final."""
     refine_lr_final: float = 1e-6
@@ -392,12 +392,10 @@ class TrainConfig:
     """What the coarse-to-fine weights act on: field (BARF: the field sees only the levels on)
     or gradient (the field sees every level; only the pose gradient is level-weighted)."""
     refine_start: float = 0.02
-    """Budget fraction before which the poses are not updated (the field first carves its fog);
-    the pose lr then decays from refine_lr to refine_lr_final over the rest of the budget. Early,
-    because a field trained long on wrong poses keeps their blur after the poses are right."""
+    """Budget fraction before which the poses are not updated (the field first carves its fog;
+    later, it has learnt the wrong poses' blur); then the pose lr decays to refine_lr_final."""
     refine_warmup: float = 0.1
-    """Fraction of the pose schedule (after refine_start) over which the pose lr ramps up
-    linearly from 0 (0: no ramp)."""
+    """Fraction of the pose schedule over which the pose lr ramps up from 0 (0: no ramp)."""
     refine_windows_per_step: int = field(default=64, metadata={"min": 1, "max": 65536})
     """While refining poses, at least this many windows per step (at most one per ray): every
     pose row needs frequent visits to learn its correction in a short run."""
@@ -407,9 +405,8 @@ class TrainConfig:
     refine_gauge: Literal["mean", "first", "none"] = "mean"
     """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift)."""
     refine_decay: float = field(default=30.0, metadata={"min": 0.0, "max": 1e4})
-    """Decoupled decay of the pose corrections towards the given poses (AdamW-style, per unit
-    of correction: a row the batch sees shrinks by pose lr x refine_decay). A prior: what the
-    events hardly constrain (a slow drift along the trajectory) goes back to the given poses."""
+    """Decoupled decay towards the given poses (a row the batch sees shrinks by pose lr x this):
+    what the events hardly constrain (a slow drift along the trajectory) goes back."""
     estimate_threshold: bool = False
     """Learn the contrast thresholds' ratio C_pos/C_neg jointly with the field (their product
     stays at scene.json's: the common scale is not observable)."""

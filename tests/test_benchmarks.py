@@ -290,3 +290,35 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     assert res["host_ms"]["render"] < res["wall_ms"]
     assert res["samples_per_step"] > 0 and res["session"]["machine"]["cpu_numbers"]
     assert "CPU numbers" in (out / "profile_step.md").read_text()
+
+
+def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
+    """benchmarks.study_sweep reads one pose-error.json per (scene, option, level) folder of
+    every sweep given, tables them (names prefixed by the other sweeps' folders) and plots
+    PSNR at 1° against 0°."""
+    from benchmarks import study_sweep
+
+    def run(folder, name, level, psnr, err=None):
+        d = tmp_path / folder / f"sweep_blocks_{name}_L{level:g}"
+        d.mkdir(parents=True)
+        stats = {} if err is None else {"pose_error_deg": err, "pose_centre_error": 0.0}
+        lv = {"level": level, "psnr": psnr, "steps": 30, "train_s": 1.0,
+              "self_calibration": {"stats": stats} if stats else None}  # fmt: skip
+        (d / "pose-error.json").write_text(json.dumps({"levels": [lv], "git_commits": ["abc"]}))
+
+    run("a", "plain", 0, 30.0)
+    run("a", "new_one", 0, 29.9)
+    run("a", "new_one", 1, 29.1, 0.08)
+    run("b", "old", 1, 25.0, 0.3)
+    (tmp_path / "a" / "sweep_blocks_broken_L1").mkdir()  # no JSON: not a finished run
+    assert study_sweep.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    rows = json.loads((tmp_path / "a" / "sweep.json").read_text())["runs"]
+    assert [(r["name"], r["level"], r["psnr"]) for r in rows] == [
+        ("b:old", 1.0, 25.0),
+        ("new_one", 0.0, 29.9),
+        ("new_one", 1.0, 29.1),
+        ("plain", 0.0, 30.0),
+    ]
+    md = (tmp_path / "a" / "sweep.md").read_text()
+    assert "| blocks | new_one | 1° | 29.10 | 0.080 |" in md
+    assert (tmp_path / "a" / "sweep.png").stat().st_size > 1000

@@ -151,7 +151,9 @@ def test_row_adam_kernel_matches_the_torch_step(with_rows, device):
             opt.step(seen if with_rows else None, found_inf=found_inf)
     torch.testing.assert_close(p_k.detach(), p_t.detach(), atol=1e-7, rtol=1e-6)
     for key in ("exp_avg", "exp_avg_sq", "row_steps"):
-        torch.testing.assert_close(opt_k.state[p_k][key], opt_t.state[p_t][key], atol=0, rtol=1e-6)
+        # float32 both; CUDA contracts multiply-adds differently in torch and Warp (1.7e-6
+        # relative measured on an H200), the CPU build agrees to 1e-7
+        torch.testing.assert_close(opt_k.state[p_k][key], opt_t.state[p_t][key], atol=0, rtol=1e-5)
     assert opt_k.state[p_k]["row_steps"].max() <= 7  # the skipped step counted for no row
 
 
