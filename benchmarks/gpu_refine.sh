@@ -31,14 +31,7 @@ TIME_STEPS=${TIME_STEPS:-30}; TIME_WARMUP=${TIME_WARMUP:-400}; SCENES=${SCENES:-
 EXTRA_VARIANTS=${EXTRA_VARIANTS:-}; EVAL_VIEWS=${EVAL_VIEWS:-10}; TINY_SET=${TINY_SET:-}
 THR_SCENE=${THR_SCENE:-blocks}; THR_LEVELS=${THR_LEVELS:-"0.15 0.25 0.4"}; THR_ARGS=${THR_ARGS:-}
 DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); COMMIT=${3:-unknown}
-PY=${PY:-python3}
-ROOT=$(cd "$(dirname "$0")/.." && pwd)
-export PYTHONUNBUFFERED=1 PYTHONPATH=$ROOT:${PYTHONPATH:-}
-cd "$ROOT"
-[ -e fastenerf/kernels ] || ln -s ../kernels fastenerf/kernels
-[ -e fastenerf/viewer ] || ln -s ../viewer fastenerf/viewer
-mkdir -p "$OUT"
-T0=$(date +%s)
+source "$(dirname "$0")/gpu_env.sh"
 log() {
     echo "[$(date +%T) +$(($(date +%s) - T0))s] $*" | tee -a "$OUT/progress.log"
     (cd "$OUT" && tar czf partial.tgz.tmp ./*.log ./*/*.json ./*/*.md ./*.md ./*.json 2>/dev/null

@@ -15,14 +15,7 @@ set -u
 DEVICE=${DEVICE:-cuda}; STUDY_STEPS=${STUDY_STEPS:-3000}; JOBS=${JOBS:-8}
 EVAL_VIEWS=${EVAL_VIEWS:-10}; SWEEP=${SWEEP:?SWEEP lists SCENE:NAME:LEVELS:SETS items}
 DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); COMMIT=${3:-unknown}
-PY=${PY:-python3}
-ROOT=$(cd "$(dirname "$0")/.." && pwd)
-export PYTHONUNBUFFERED=1 PYTHONPATH=$ROOT:${PYTHONPATH:-}
-cd "$ROOT"
-[ -e fastenerf/kernels ] || ln -s ../kernels fastenerf/kernels
-[ -e fastenerf/viewer ] || ln -s ../viewer fastenerf/viewer
-mkdir -p "$OUT"
-T0=$(date +%s)
+source "$(dirname "$0")/gpu_env.sh"
 log() {
     echo "[$(date +%T) +$(($(date +%s) - T0))s] $*" | tee -a "$OUT/progress.log"
     (cd "$OUT" && tar czf partial.tgz.tmp ./*.log ./*/*.json 2>/dev/null
