@@ -19,6 +19,7 @@ from pathlib import Path
 
 from benchmarks.cli import benchmark_main
 from benchmarks.session import jsonable
+from fastenerf.errors import InputError
 from fastenerf.io import atomic_path, write_json
 
 _DIR = re.compile(r"sweep_(?P<scene>[^_]+)_(?P<name>.+)_L(?P<level>[0-9.]+)$")
@@ -109,14 +110,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
+    for d in (out, *map(Path, args.more)):
+        if not d.is_dir():
+            raise InputError(f"{d}: not a folder (a sweep's OUT, benchmarks/gpu_sweep.sh)")
     rows = collect(out)
     for m in args.more:
         rows += collect(Path(m), prefix=f"{Path(m).name}:")
+    if not rows:  # an empty table must not replace a sweep's own
+        raise InputError(f"{out}: no finished run (sweep_SCENE_NAME_L<level>/pose-error.json)")
     rows.sort(key=lambda r: (r["scene"], r["name"], r["level"]))
-    plot(rows, out / "sweep.png")
-    write_json(out / "sweep.json", jsonable({"runs": rows}))
-    with atomic_path(out / "sweep.md") as tmp:
-        tmp.write_text(markdown(rows))
+    try:
+        plot(rows, out / "sweep.png")
+        write_json(out / "sweep.json", jsonable({"runs": rows}))
+        with atomic_path(out / "sweep.md") as tmp:
+            tmp.write_text(markdown(rows))
+    except OSError as e:
+        raise InputError(f"{out}: cannot write the table there ({e.strerror})") from None
     print(markdown(rows), end="")
     return 0
 

@@ -322,3 +322,9 @@ def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     md = (tmp_path / "a" / "sweep.md").read_text()
     assert "| blocks | new_one | 1° | 29.10 | 0.080 |" in md
     assert (tmp_path / "a" / "sweep.png").stat().st_size > 1000
+    # bad input: one line, exit 2, and the tables already there stay as they are
+    (tmp_path / "empty").mkdir()
+    assert study_sweep.main([str(tmp_path / "empty")]) == 2
+    assert not any((tmp_path / "empty").iterdir())
+    assert study_sweep.main([str(tmp_path / "a"), str(tmp_path / "missing")]) == 2
+    assert (tmp_path / "a" / "sweep.md").read_text() == md
