@@ -58,6 +58,15 @@ class MarcherOptions:
     chosen on every built-in scene and a mesh scene (benchmarks/RESULTS.md, issue #17)."""
     early_steps: int = field(default=256, metadata={"min": 0, "max": 10_000_000})
     """Training steps that march with early_cone_angle (the occupancy grid's warm-up)."""
+    early_stop_eps: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    """Compacted training samples (instant-ngp; nerfacc's early stop): the density network
+    first runs alone, without gradients, on every marched sample, and only the samples whose
+    transmittance before them is at least this (a fraction of the light, 1e-4 is where
+    compositing stops anyway) go through the full field, forward and backward. 0: off (with
+    alpha_threshold 0: every marched sample is trained on, no density pre-pass)."""
+    alpha_threshold: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    """With compaction, also drop training samples whose opacity alpha = 1 - exp(-σ·dt) is
+    below this (nearly transparent ones; nerfacc's alpha_thre). 0: keep them all."""
 
 
 @dataclass

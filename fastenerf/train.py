@@ -438,9 +438,11 @@ class Trainer:
             "positive_fraction": host(batch.positive.float().mean()),
             **{k: host(v) for k, v in parts.items()},
         }
-        if "n_samples" in out:
-            n = out["n_samples"]
-            stats["samples_per_ray"] = (host(n) if torch.is_tensor(n) else n) / n_rays
+        # the samples the field ran on, and the marched ones where compaction kept fewer
+        for key, name in (("n_samples", "samples_per_ray"), ("n_marched", "marched_per_ray")):
+            if key in out:
+                n = out[key]
+                stats[name] = (host(n) if torch.is_tensor(n) else n) / n_rays
         # the calibration's estimates are read on the host: every step on the plain path, at
         # the flush steps on the device-paced one
         if self.selfcal is not None and (not on_device or self._flush_due()):

@@ -53,7 +53,7 @@ class FixedSamples(NamedTuple):
 
 
 @wp.kernel
-def _reserve(
+def reserve_slices(
     csum: wp.array(dtype=wp.int32),
     seg_counts: wp.array(dtype=wp.int32),
     n_seg: int,
@@ -64,9 +64,10 @@ def _reserve(
     n_used: wp.array(dtype=wp.int32),
     n_wanted: wp.array(dtype=wp.int32),
 ):
-    """One thread per ray. csum: inclusive scan of seg_counts (R * n_seg,). Ray ends are
-    nondecreasing, so the rays that fit are a prefix and its last ray's end is n_used: written
-    by the one thread at the boundary (no atomics, nothing to zero first)."""
+    """One thread per ray (`prune.py` reuses it with n_seg 1). csum: inclusive scan of
+    seg_counts (R * n_seg,). Ray ends are nondecreasing, so the rays that fit are a prefix and
+    its last ray's end is n_used: written by the one thread at the boundary (no atomics,
+    nothing to zero first)."""
     r = wp.tid()
     R = csum.shape[0] / n_seg
     end = csum[r * n_seg + n_seg - 1]
@@ -96,12 +97,13 @@ def _reserve(
 
 
 @wp.kernel
-def _pad_tail(
+def pad_tail(
     n_used: wp.array(dtype=wp.int32),
     t_starts: wp.array(dtype=float),
     t_ends: wp.array(dtype=float),
     ray_indices: wp.array(dtype=wp.int32),
 ):
+    """One thread per slot: slots at or past n_used[0] become padding (t 0, 0, ray 0)."""
     i = wp.tid()
     if i >= n_used[0]:
         t_starts[i] = 0.0
@@ -125,7 +127,9 @@ def empty_fixed_samples(n_rays: int, capacity: int, device) -> FixedSamples:
     )
 
 
-def _check_out(out: FixedSamples, R: int, capacity: int, dev: torch.device) -> None:
+def check_fixed_out(out: FixedSamples, R: int, capacity: int, dev: torch.device) -> None:
+    """ValueError unless `out` holds R rays' and `capacity` slots' contiguous buffers of
+    `empty_fixed_samples`' dtypes on `dev`."""
     want = FixedSamples((R, 2), (capacity,), (capacity,), (capacity,), (R,), (1,), (1,))
     like = empty_fixed_samples(0, 0, "cpu")
     for name, t, shape, ref in zip(FixedSamples._fields, out, want, like, strict=True):
@@ -186,7 +190,7 @@ def march_rays_fixed(
     if out is None:
         out = empty_fixed_samples(p.R, capacity, dev)
     else:
-        _check_out(out, p.R, capacity, dev)
+        check_fixed_out(out, p.R, capacity, dev)
     if p.R == 0:
         out.n_used.zero_()
         out.n_wanted.zero_()
@@ -195,7 +199,7 @@ def march_rays_fixed(
         csum = torch.cumsum(seg_counts, 0, dtype=torch.int32)
         seg_info = torch.empty(p.R * p.n_seg, 2, dtype=torch.int32, device=dev)
         launch(
-            _reserve,
+            reserve_slices,
             p.R,
             p.like,
             [
@@ -211,5 +215,5 @@ def march_rays_fixed(
             ],
         )
         write_samples(p, seg_info, out.t_starts, out.t_ends, out.ray_indices)
-    launch(_pad_tail, capacity, p.like, [out.n_used, out.t_starts, out.t_ends, out.ray_indices])
+    launch(pad_tail, capacity, p.like, [out.n_used, out.t_starts, out.t_ends, out.ray_indices])
     return out

@@ -16,7 +16,7 @@ from fastenerf.data.formats.native import load_scene
 from fastenerf.hooks import Checkpointer, DivergenceGuard, MetricsLog
 from fastenerf.run import load_checkpoint
 from fastenerf.train import STATS_FLUSH_EVERY, Trainer
-from tests.test_train import tiny_cfg
+from tests.test_train import NGP_TINY, tiny_cfg
 
 
 @pytest.fixture(scope="module")
@@ -34,17 +34,24 @@ def weights(trainer: Trainer) -> dict[str, torch.Tensor]:
     return {k: p.detach().clone() for k, p in trainer.field.named_parameters()}
 
 
-@pytest.mark.parametrize("backend", ["ngp", "vanilla"])
+@pytest.mark.parametrize("backend", ["ngp", "vanilla", "ngp-compacted"])
 def test_device_path_takes_the_plain_paths_steps(scene, tmp_path, backend):
+    kw = {}
+    if backend == "ngp-compacted":  # compacted samples (early_stop_eps) in their own buffer
+        backend, kw = "ngp", {"backend_options": {**NGP_TINY, "early_stop_eps": 1e-4}}
     # one after the other: each trainer seeds the global generator (ray jitter) when built
-    plain = make(scene, tmp_path / "plain", "plain", backend, steps=5)
+    plain = make(scene, tmp_path / "plain", "plain", backend, steps=5, **kw)
     a = [plain.step()["loss"] for _ in range(5)]
-    device = make(scene, tmp_path / "device", "device", backend, steps=5)
+    device = make(scene, tmp_path / "device", "device", backend, steps=5, **kw)
     b = [device.step()["loss"] for _ in range(5)]
     assert torch.is_tensor(b[-1])  # still on the device until flushed
     device.flush_stats()
     b = [s["loss"] for s in device.history]
     assert a == b
+    if kw:  # the field ran on fewer samples than were marched, and the stats say so
+        for h in (plain.history[-1], device.history[-1]):
+            assert 0 < h["samples_per_ray"] < h["marched_per_ray"]
+        assert device.field.pruned_capacity is not None
     wa, wb = weights(plain), weights(device)
     for k in wa:
         assert torch.equal(wa[k], wb[k]), k

@@ -502,3 +502,85 @@ def test_ngp_early_cone_marches_fewer_samples_until_early_steps(make):
     assert abs(evaluation - late) <= 0.05 * late  # eval marches with cone_angle (jitter aside)
     defaults = parse_options("ngp", {})
     assert defaults.marcher.early_cone_angle == 1 / 64 and defaults.marcher.early_steps == 256
+
+
+# ------------------------------------------------------------- ngp compacted samples (prune)
+
+
+def _train_render(f, o, d, seed: int = 3):
+    """A training render (jitter seeded) and the gradients of a loss on it, rays' included."""
+    o, d = o.clone().requires_grad_(), d.clone().requires_grad_()
+    torch.manual_seed(seed)
+    out = f.render(o, d, near=1e-4, background=BG, train=True)
+    loss = (out["rgb"] - 0.3).square().mean() + out["depth"].mean() + out["distortion"]
+    f.zero_grad()
+    loss.backward()
+    grads = {k: p.grad.clone() for k, p in f.named_parameters()}
+    return out, loss.detach(), {**grads, "rays_o": o.grad, "rays_d": d.grad}
+
+
+def test_ngp_compacted_samples_train_as_all_marched_ones(make, monkeypatch):
+    """early_stop_eps 1e-4 (where compositing stops anyway): the full field runs on a fraction
+    of the marched samples, yet pixels, loss and gradients (the rays' too, for pose refinement)
+    are those of all of them. 0 (the default) runs no density pre-pass at all."""
+    o, d = hit_rays(24)
+    opaque = dict(density_bias=3.0)  # a thick fog: most marched samples lie behind T < 1e-4
+    ref, ref_loss, ref_g = _train_render(make("ngp", **opaque), o, d)
+    out, loss, g = _train_render(make("ngp", early_stop_eps=1e-4, **opaque), o, d)
+    assert out["n_marched"] == ref["n_samples"] and "n_marched" not in ref
+    assert out["n_samples"] < 0.5 * out["n_marched"], (out["n_samples"], out["n_marched"])
+    for k in ("rgb", "depth", "opacity"):
+        torch.testing.assert_close(out[k], ref[k], rtol=0, atol=1e-6)
+    assert float(loss) == pytest.approx(float(ref_loss), rel=1e-6)
+    for k, v in g.items():
+        assert torch.isfinite(v).all() and v.abs().sum() > 0, k
+        torch.testing.assert_close(v, ref_g[k], rtol=1e-4, atol=1e-6 * float(v.abs().max()))
+    # off: not one call into the pruning
+    monkeypatch.setattr(ngp_mod, "prune_samples", None)
+    monkeypatch.setattr(ngp_mod, "prune_samples_fixed", None)
+    f = make("ngp", **opaque)
+    again, _, _ = _train_render(f, o, d)
+    assert torch.equal(again["rgb"], ref["rgb"]) and again["n_samples"] == ref["n_samples"]
+    f.use_fixed_capacity(True)
+    assert f.pruned_capacity is None and "n_marched" not in _train_render(f, o, d)[0]
+
+
+def test_ngp_compacted_samples_in_fixed_buffers(make):
+    """With fixed capacity the compacted samples get their own buffer, sized exactly on the
+    first batch, then following the want at occupancy updates; a ray that either buffer has no
+    room for is left out (`valid`), the others render as with exact sizes."""
+    f = make("ngp", early_stop_eps=1e-4, density_bias=3.0)
+    o, d = hit_rays(24)
+    exact, _, _ = _train_render(f, o, d)
+    f.use_fixed_capacity(True)
+    fixed, _, g = _train_render(f, o, d)  # sizes both buffers from this batch
+    assert fixed["valid"].all()
+    assert int(fixed["n_samples"]) == exact["n_samples"]
+    assert int(fixed["n_marched"]) == exact["n_marched"]
+    torch.testing.assert_close(fixed["rgb"], exact["rgb"], rtol=0, atol=1e-6)
+    assert all(torch.isfinite(v).all() for v in g.values())
+    # the compacted buffer too small: rays are flagged, the rest unchanged, gradients finite
+    f.pruned_capacity.capacity = exact["n_samples"] // 2
+    small, _, g = _train_render(f, o, d)
+    valid = small["valid"]
+    assert (
+        0 < int(valid.sum()) < len(valid) and int(small["n_samples"]) <= f.pruned_capacity.capacity
+    )
+    torch.testing.assert_close(small["rgb"][valid], exact["rgb"][valid], rtol=0, atol=1e-6)
+    assert all(torch.isfinite(v).all() for v in g.values())
+    # the march's buffer too small as well: its overflowed rays are out too
+    f.sample_capacity.capacity = exact["n_marched"] // 4
+    both, _, _ = _train_render(f, o, d)
+    assert int((~both["valid"]).sum()) > int((~valid).sum())
+    torch.testing.assert_close(
+        both["rgb"][both["valid"]], exact["rgb"][both["valid"]], atol=1e-6, rtol=0
+    )
+    # occupancy updates grow the compacted buffer to what was wanted
+    f.update(16)
+    f.update(32)
+    assert f.pruned_capacity.capacity >= exact["n_samples"]
+    # a new cone (the early steps are over) sizes both buffers again at that batch, exactly
+    f.pruned_capacity.capacity = 1
+    f.train_step = f.options.marcher.early_steps
+    late, _, _ = _train_render(f, o, d)
+    assert late["valid"].all() and f.pruned_capacity.capacity >= int(late["n_samples"]) > 0

@@ -64,6 +64,50 @@ def _check_padding(f, n):
     assert (f.ray_indices[n:] == 0).all()
 
 
+def check_against_exact(f, exact, capacity: int) -> None:
+    """FixedSamples `f` of `capacity` slots holds what the exactly sized (packed_info,
+    t_starts, t_ends, ray_indices) `exact` holds, as far as it fits: the rays that do not fit
+    get count 0 and a flag, the ones that do keep their slots, the rest is padding."""
+    pi, ts, te, ri = exact
+    counts = pi[:, 1]
+    ends = torch.cumsum(counts, 0)
+    fits = ends <= capacity
+    assert f.t_starts.shape == f.t_ends.shape == f.ray_indices.shape == (capacity,)
+    assert f.overflow.dtype == torch.bool
+    assert torch.equal(f.overflow, (counts > 0) & ~fits)
+    assert torch.equal(f.packed_info[:, 1], torch.where(fits, counts, 0))
+    n_used = int(ends[fits].max()) if fits.any() else 0
+    assert f.n_used.tolist() == [n_used] and f.n_wanted.tolist() == [ts.numel()]
+    assert (f.packed_info[:, 0] <= capacity).all()
+    assert torch.equal(f.packed_info[fits], pi[fits])
+    assert torch.equal(f.t_starts[:n_used], ts[:n_used])
+    assert torch.equal(f.t_ends[:n_used], te[:n_used])
+    assert torch.equal(f.ray_indices[:n_used], ri[:n_used])
+    _check_padding(f, n_used)
+
+
+def poisoned_out(R: int, capacity: int, guard: int = 50):
+    """(big, out): output buffers of `capacity` slots that are views into `guard` slots larger
+    poisoned ones (NaN, 7); `untouched_past(big, capacity)` says nothing landed beyond."""
+    big = empty_fixed_samples(R, capacity + guard, "cpu")
+    for t in big:
+        t.fill_(float("nan") if t.dtype.is_floating_point else 7)
+    out = big._replace(
+        t_starts=big.t_starts[:capacity],
+        t_ends=big.t_ends[:capacity],
+        ray_indices=big.ray_indices[:capacity],
+    )
+    return big, out
+
+
+def untouched_past(big, capacity: int) -> bool:
+    return bool(
+        big.t_starts[capacity:].isnan().all()
+        and big.t_ends[capacity:].isnan().all()
+        and (big.ray_indices[capacity:] == 7).all()
+    )
+
+
 @pytest.mark.parametrize("case", CASES)
 def test_equals_march_rays_when_it_fits(case):
     gen = _gen()
@@ -72,13 +116,9 @@ def test_equals_march_rays_when_it_fits(case):
     assert S > 200 and (pi[:, 1] == 0).any()  # not vacuous; empty rays included
     for capacity in (S, S + 37):
         f = march_rays_fixed(*args, capacity=capacity)
-        assert f.t_starts.shape == f.t_ends.shape == f.ray_indices.shape == (capacity,)
-        assert torch.equal(f.packed_info, pi)
-        assert torch.equal(f.t_starts[:S], ts) and torch.equal(f.t_ends[:S], te)
-        assert torch.equal(f.ray_indices[:S], ri)
-        assert not f.overflow.any() and f.overflow.dtype == torch.bool
-        assert f.n_used.tolist() == [S] and f.n_wanted.tolist() == [S]
-        _check_padding(f, S)
+        assert torch.equal(f.packed_info, pi) and not f.overflow.any()
+        assert f.n_used.tolist() == [S]
+        check_against_exact(f, (pi, ts, te, ri), capacity)
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -87,35 +127,14 @@ def test_overflow_flags_exactly_the_rays_that_do_not_fit(case):
     args, (pi, ts, te, ri) = _march(case, gen)
     S, R = ts.numel(), pi.shape[0]
     counts = pi[:, 1]
-    ends = torch.cumsum(counts, 0)
-    guard = 50
     for capacity in (0, 1, int(counts[counts > 0][0]), S // 3, S - 1):
         # the buffers are views into larger poisoned ones: nothing may land past `capacity`
-        big = empty_fixed_samples(R, capacity + guard, "cpu")
-        for t in big:
-            t.fill_(float("nan") if t.dtype.is_floating_point else 7)
-        out = big._replace(
-            t_starts=big.t_starts[:capacity],
-            t_ends=big.t_ends[:capacity],
-            ray_indices=big.ray_indices[:capacity],
-        )
+        big, out = poisoned_out(R, capacity)
         f = march_rays_fixed(*args, capacity=capacity, out=out)
         assert f is out  # written in place
-        assert big.t_starts[capacity:].isnan().all() and big.t_ends[capacity:].isnan().all()
-        assert (big.ray_indices[capacity:] == 7).all()
-        fits = ends <= capacity
-        assert torch.equal(f.overflow, (counts > 0) & ~fits)
+        assert untouched_past(big, capacity)
         assert f.overflow.any()
-        assert torch.equal(f.packed_info[:, 1], torch.where(fits, counts, 0))
-        n_used = int(ends[fits].max()) if fits.any() else 0
-        assert f.n_used.tolist() == [n_used] and f.n_wanted.tolist() == [S]
-        assert (f.packed_info[:, 0] <= capacity).all()
-        # the rays that fit have march_rays' samples in march_rays' slots
-        assert torch.equal(f.packed_info[fits], pi[fits])
-        assert torch.equal(f.t_starts[:n_used], ts[:n_used])
-        assert torch.equal(f.t_ends[:n_used], te[:n_used])
-        assert torch.equal(f.ray_indices[:n_used], ri[:n_used])
-        _check_padding(f, n_used)
+        check_against_exact(f, (pi, ts, te, ri), capacity)
 
 
 def test_no_rays_and_zero_capacity():

@@ -49,6 +49,7 @@ def test_nested_and_flat_options_are_the_same():
         ("ngp", {"n_features": 3}, "'encoding.n_features' must be one of [1, 2, 4, 8]"),
         ("ngp", {"grid_resolution": 33}, "'occupancy.grid_resolution' must be a multiple of 2"),
         ("ngp", {"dt_min": 0}, "'marcher.dt_min' must be in (0, 10]"),
+        ("ngp", {"alpha_threshold": 2}, "'marcher.alpha_threshold' must be in [0, 1], got 2"),
         ("ngp", {"max_resolution": 8, "base_resolution": 16}, "base_resolution <= max_resolution"),
         ("ngp", {"win_max": 10}, "unknown key 'win_max' (valid: encoding, marcher, network, "),
         ("ngp", {"marcher": {"hidden": 3}}, "unknown key 'marcher.hidden' (valid: cone_angle,"),

@@ -66,6 +66,10 @@ def test_help_lists_every_training_knob_with_its_docstring(capsys):
             "'encoding.log2_table_size' must be in [10, 24]",
         ),
         (["--options", '{"cone_angle": -5}'], "'marcher.cone_angle' must be in [0, 1], got -5"),
+        (
+            ["--options", '{"early_stop_eps": -1}'],
+            "'marcher.early_stop_eps' must be in [0, 1], got -1",
+        ),
         (["--options", '{"win_max": 10}'], "'win_max' is a training option, not a backend option"),
         (["--options", "[1]"], "--options must be a JSON object"),
         (["--cone-angle", "-1"], "'marcher.cone_angle' must be in [0, 1]"),

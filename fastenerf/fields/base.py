@@ -22,7 +22,8 @@ class RenderOutput(TypedDict, total=False):
     depth: torch.Tensor  # (R,) expected distance along the unit ray, world units
     opacity: torch.Tensor  # (R,) accumulated alpha in [0, 1]
     distortion: torch.Tensor  # () mip-NeRF 360 distortion loss (mean over rays), when computed
-    n_samples: int | torch.Tensor  # samples marched (for stats; a device count when fixed)
+    n_samples: int | torch.Tensor  # samples the field ran on (stats; a device count when fixed)
+    n_marched: int | torch.Tensor  # samples marched, where fewer were kept (ngp early_stop_eps)
     valid: torch.Tensor  # (R,) bool, False for rays a fixed sample buffer had no room for
 
 

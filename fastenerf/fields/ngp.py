@@ -4,6 +4,8 @@ Encoding, network, sampler and renderer stay separate as in instant-ngp:
     x --hash_grid_encode--> density MLP --> (σ, geometry features)
     d --sh_encode---------> colour MLP([geometry features, SH]) --> rgb
     rays --march_rays (occupancy grid)--> packed samples --composite--> pixels
+Training can compact the marched samples first (`early_stop_eps`): σ alone, without
+gradients, picks the samples still visible (kernels/prune.py); only those run the full field.
 Every heavy op is a Warp kernel from `fastenerf.kernels`; the MLPs are plain PyTorch
 (bf16 autocast on CUDA, set by the trainer). Only what the scene needs is built: the
 cylinder clip exists only when the scene sets one (in the density and in the grid).
@@ -26,9 +28,10 @@ from ..errors import InputError
 from ..kernels.composite import composite, distortion_loss
 from ..kernels.hashgrid import hash_grid_encode, init_table
 from ..kernels.occupancy import OccupancyGrid
+from ..kernels.prune import prune_samples, prune_samples_fixed
 from ..kernels.ray_points import ray_points
 from ..kernels.raymarch import march_rays
-from ..kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
+from ..kernels.raymarch_fixed import FixedSamples, empty_fixed_samples, march_rays_fixed
 from ..kernels.sh import sh_encode
 from .base import Field, RenderOutput, check_points, park_non_finite
 from .capacity import SampleCapacity
@@ -72,6 +75,12 @@ def trunc_exp(x: torch.Tensor, hi: float = 15.0) -> torch.Tensor:
     return _TruncExp.apply(x, hi)
 
 
+def _n_used(samples) -> int | torch.Tensor:
+    """Slots holding samples: a Python int for exactly sized ones, a 0-dim device count for a
+    FixedSamples (never read here)."""
+    return samples.n_used[0] if isinstance(samples, FixedSamples) else int(len(samples[1]))
+
+
 def _mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int) -> nn.Sequential:
     # No biases, like tiny-cuda-nn's fully fused MLPs: the hash features carry the offsets.
     layers: list[nn.Module] = []
@@ -99,8 +108,12 @@ class NGPField(Field):
     train_step: int = 0
     # fixed-capacity training marches (None: exactly sized, the host reads the count)
     sample_capacity: SampleCapacity | None = None
+    # the same for the compacted samples (MarcherOptions.early_stop_eps), None: exact or off
+    pruned_capacity: SampleCapacity | None = None
     _fixed_out = None
     _fixed_key = None
+    _pruned_out = None
+    _pruned_key = None
     _capacity_cone = None
     level_weights_mode: str = "field"  # or "gradient" (fields/level_weights.py)
 
@@ -231,9 +244,12 @@ class NGPField(Field):
         if train:  # checked on the device, not read: see check_points
             rays_o, rays_d, bad = park_non_finite(rays_o, rays_d)
         with torch.no_grad(), record_function("march"):
-            fixed = self._march(rays_o, rays_d, near, train)
-        packed_info, t_starts, t_ends, ray_idx = fixed[:4]
-        fixed = fixed if len(fixed) > 4 else None
+            marched = self._march(rays_o, rays_d, near, train)
+        samples = marched
+        if train and self._prunes():
+            with torch.no_grad(), record_function("prune"):
+                samples = self._prune(rays_o, rays_d, marched)
+        packed_info, t_starts, t_ends, ray_idx = samples[:4]
         with record_function("field"):
             # per-ray backward: the rays are learnt under pose refinement (kernels/ray_points)
             x, d = ray_points(rays_o, rays_d, 0.5 * (t_starts + t_ends), ray_idx, packed_info)
@@ -247,10 +263,13 @@ class NGPField(Field):
             "rgb": out["rgb"],
             "depth": out["depth"],
             "opacity": out["opacity"],
-            "n_samples": int(len(t_starts)) if fixed is None else fixed.n_used[0],
+            "n_samples": _n_used(samples),
         }
-        if fixed is not None:
-            res["valid"] = ~fixed.overflow
+        if samples is not marched:
+            res["n_marched"] = _n_used(marched)
+        if isinstance(samples, FixedSamples):  # rays either buffer had no room for are out
+            overflow = samples.overflow
+            res["valid"] = ~(overflow if samples is marched else overflow | marched.overflow)
         if train:
             res["distortion"] = distortion_loss(
                 out["weights"], t_starts, t_ends, packed_info
@@ -277,9 +296,10 @@ class NGPField(Field):
         return march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
 
     def use_fixed_capacity(self, on: bool) -> None:
-        """March training batches into fixed-capacity buffers (no host sync; `capacity.py`)
-        or into exactly sized ones (the host reads the count)."""
+        """March (and compact) training batches into fixed-capacity buffers (no host sync;
+        `capacity.py`) or into exactly sized ones (the host reads the counts)."""
         self.sample_capacity = SampleCapacity() if on else None
+        self.pruned_capacity = SampleCapacity() if on and self._prunes() else None
         self._capacity_cone = None
 
     def _march_fixed(self, rays_o, rays_d, cone: float, march: dict):
@@ -289,6 +309,8 @@ class NGPField(Field):
             exact = march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
             cap.reset(len(exact[1]))
             self._capacity_cone = cone
+            if self.pruned_capacity is not None:
+                self.pruned_capacity.reset()  # its want jumps too: sized at this batch
         key = (len(rays_o), cap.capacity)
         if self._fixed_out is None or self._fixed_key != key:
             self._fixed_out = empty_fixed_samples(len(rays_o), cap.capacity, rays_o.device)
@@ -305,6 +327,32 @@ class NGPField(Field):
         cap.observe(fixed.n_wanted)
         return fixed
 
+    def _prunes(self) -> bool:
+        """Whether training compacts its marched samples (`MarcherOptions.early_stop_eps`)."""
+        opt = self.options.marcher
+        return opt.early_stop_eps > 0 or opt.alpha_threshold > 0
+
+    def _prune(self, rays_o, rays_d, marched):
+        """The marched samples a training step trains on: those still visible by the density
+        alone (kernels/prune.py), exactly sized or a FixedSamples as `marched` is."""
+        opt = self.options.marcher
+        packed_info, t_starts, t_ends, ray_idx = marched[:4]
+        x, _ = ray_points(rays_o, rays_d, 0.5 * (t_starts + t_ends), ray_idx, packed_info)
+        sigma = self._geometry(x)[0]  # every slot, a fixed buffer's padding too: never read
+        args = (sigma, packed_info, t_starts, t_ends, opt.early_stop_eps, opt.alpha_threshold)
+        if not isinstance(marched, FixedSamples):
+            return prune_samples(*args)
+        cap = self.pruned_capacity
+        if cap.capacity is None:  # first batch: size it once, exactly
+            cap.reset(len(prune_samples(*args)[1]))
+        key = (len(rays_o), cap.capacity)
+        if self._pruned_out is None or self._pruned_key != key:
+            self._pruned_out = empty_fixed_samples(len(rays_o), cap.capacity, rays_o.device)
+            self._pruned_key = key
+        pruned = prune_samples_fixed(*args, capacity=cap.capacity, out=self._pruned_out)
+        cap.observe(pruned.n_wanted)
+        return pruned
+
     # -- occupancy -----------------------------------------------------------------------
     def update(self, step: int) -> None:
         """Refresh the occupancy grid every `update_every` steps (instant-ngp's schedule)."""
@@ -312,8 +360,9 @@ class NGPField(Field):
         opt = self.options.occupancy
         if step % opt.update_every:
             return
-        if self.sample_capacity is not None:
-            self.sample_capacity.refresh()
+        for cap in (self.sample_capacity, self.pruned_capacity):
+            if cap is not None:
+                cap.refresh()
         with torch.no_grad():
             self.grid.update(
                 step,
