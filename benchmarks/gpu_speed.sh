@@ -9,7 +9,9 @@
 # Stages (STAGES, in this order; each can be left out):
 #   kernels   marching/compositing vs PyTorch, the fixed-capacity march (eager, graph, syncs)
 #   profile   one step's profile after (PROFILE_SCENES) and before (blocks): ms/step, the GPU's
-#             busy share, samples per ray, host syncs per step
+#             busy share, samples per ray, host syncs per step. With PROFILE_VARIANTS
+#             ("NAME=JSON ...", benchmarks.cpu_preset variants), each variant of the after tree
+#             on each scene instead (and BEFORE_TREE may be '-')
 #   evt       60 s error-vs-time curves, before then after, on each of SCENES (side by side)
 #   variants  the after tree with each VARIANT ("NAME:SETS", SETS a comma-separated --set list,
 #             empty for the defaults) on each of SCENES
@@ -20,7 +22,9 @@ DEVICE=${DEVICE:-cuda}; BUDGET=${BUDGET:-60}; SCENES=${SCENES:-"blocks plant shi
 PROFILE_SCENES=${PROFILE_SCENES:-"blocks plant shiny lattice meshobj"}
 STAGES=${STAGES:-"kernels profile evt variants"}; WARMUP=${WARMUP:-1500}
 VARIANTS=${VARIANTS:-"cone0:ngp:cone_angle=0 early:ngp:cone_angle=0,ngp:early_cone_angle=0.015625,ngp:early_steps=256"}
-DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); COMMIT=${3:-unknown}; BEFORE=$(realpath "$4")
+PROFILE_VARIANTS=${PROFILE_VARIANTS:-}
+DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); COMMIT=${3:-unknown}
+BEFORE=$4; [ "$BEFORE" = - ] || BEFORE=$(realpath "$4")
 PY=${PY:-python3}
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 export PYTHONUNBUFFERED=1
@@ -28,7 +32,7 @@ link_package() {  # an uninstalled copy gets the links setup.py's package_dir wo
     [ -e "$1/fastenerf/kernels" ] || ln -s ../kernels "$1/fastenerf/kernels"
     [ -e "$1/fastenerf/viewer" ] || ln -s ../viewer "$1/fastenerf/viewer"
 }
-link_package "$ROOT"; link_package "$BEFORE"
+link_package "$ROOT"; [ "$BEFORE" = - ] || link_package "$BEFORE"
 mkdir -p "$OUT"
 T0=$(date +%s)
 log() {
@@ -47,15 +51,21 @@ if want kernels; then
     in_tree "$ROOT" -m benchmarks.kernels_render --device "$DEVICE" > "$OUT/kernels.log" 2>&1
     log "kernels done (rc $?)"
 fi
-profile() {  # TREE LABEL SCENE
-    mkdir -p "$OUT/profile_$2_$3"
-    in_tree "$1" -m benchmarks.profile_step --scene "$DATA/$3" --device "$DEVICE" \
-        --warmup "$WARMUP" --steps 30 --out "$OUT/profile_$2_$3" --commit "$2" --quiet \
-        > "$OUT/profile_$2_$3.log" 2>&1
-    log "profile $2 $3 done (rc $?)"
+profile() {  # TREE LABEL SCENE [--variant NAME=JSON]
+    local tree=$1 label=$2 s=$3; shift 3
+    mkdir -p "$OUT/profile_${label}_$s"
+    in_tree "$tree" -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
+        --warmup "$WARMUP" --steps 30 --out "$OUT/profile_${label}_$s" --commit "$label" \
+        --quiet "$@" > "$OUT/profile_${label}_$s.log" 2>&1
+    log "profile $label $s done (rc $?)"
 }
-if want profile; then
-    profile "$BEFORE" before blocks
+if want profile && [ -n "$PROFILE_VARIANTS" ]; then
+    for s in $PROFILE_SCENES; do
+        [ -d "$DATA/$s" ] || continue
+        for v in $PROFILE_VARIANTS; do profile "$ROOT" "${v%%=*}" "$s" --variant "$v"; done
+    done
+elif want profile; then
+    [ "$BEFORE" = - ] || profile "$BEFORE" before blocks
     for s in $PROFILE_SCENES; do [ -d "$DATA/$s" ] && profile "$ROOT" after "$s"; done
 fi
 evt() {  # TREE LABEL SCENE [--set ...]

@@ -242,6 +242,11 @@ def markdown(res: dict) -> str:
         f"{res['steps']} steps after {res['warmup']} warm-up steps; "
         f"{res['rays_per_step']} rays/step"
         + (f", {samples:,.0f} samples/step" if samples else "")
+        + (
+            f" ({res['samples_per_ray']:.1f} per ray kept of {res['marched_per_ray']:.1f} marched)"
+            if res.get("marched_per_ray")
+            else ""
+        )
         + f"; **{res['wall_ms_unprofiled']:.2f} ms/step** wall without the profiler, "
         f"{res['wall_ms']:.2f} ms under it"
         + (
@@ -299,6 +304,7 @@ def run(args: argparse.Namespace) -> int:
     res = hook.result
     hist = trainer.history[-args.steps :]
     spr = [h["samples_per_ray"] for h in hist if "samples_per_ray" in h]
+    mpr = [h["marched_per_ray"] for h in hist if "marched_per_ray" in h]  # compaction on
     n_rays = trainer.cfg.rays_per_step
     res.update(
         scene=Path(args.scene).resolve().name,
@@ -308,6 +314,7 @@ def run(args: argparse.Namespace) -> int:
         rays_per_step=n_rays,
         samples_per_ray=(sum(spr) / len(spr)) if spr else None,
         samples_per_step=(2 * n_rays * sum(spr) / len(spr)) if spr else None,
+        marched_per_ray=(sum(mpr) / len(mpr)) if mpr else None,
         session=session_info(device, args.commit),
     )
     write_json(out / "profile_step.json", jsonable(res))
