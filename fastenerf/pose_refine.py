@@ -201,14 +201,25 @@ class RowAdam(torch.optim.Optimizer):
         self.fused = fused  # one Warp launch per float32 parameter (`kernels.pose_rays`)
 
     @torch.no_grad()
-    def step(self, rows: torch.Tensor | None = None, closure=None, found_inf=None):  # noqa: D102
+    def step(
+        self,
+        rows: torch.Tensor | None = None,
+        closure=None,
+        found_inf=None,
+        decay: float = 0.0,
+    ):  # noqa: D102
         """rows: (G,) bool, the rows to step (None: every row with a gradient); found_inf:
-        optional 0-dim device flag (non-zero: step no row, as torch's fused Adam skips).
+        optional 0-dim device flag (non-zero: step no row, as torch's fused Adam skips);
+        decay: decoupled decay (AdamW's, after the Adam update): each row stepped is then
+        multiplied by 1 − min(1, lr · decay); 0: none. A parameter without a gradient is
+        skipped, decay included.
 
         Nothing waits for the device: the fused kernel reads the flags there, and the torch
         reference computes every row and keeps the unseen ones by a select (no boolean
         indexing; the rows are few, the arithmetic is cheap).
         """
+        if decay < 0:
+            raise ValueError(f"RowAdam: decay must be >= 0, got {decay}")
         kernels = _pose_rays() if self.fused else None
         for group in self.param_groups:
             for p in group["params"]:
@@ -220,15 +231,14 @@ class RowAdam(torch.optim.Optimizer):
                     st["exp_avg_sq"] = torch.zeros_like(p)
                     st["row_steps"] = torch.zeros(p.shape[0], 1, device=p.device)
                 if kernels is not None and _fusable(p, st):
-                    kernels.row_adam(
-                        p, p.grad, st, rows, found_inf, group["lr"], group["betas"], group["eps"]
-                    )
+                    lr, betas, eps = group["lr"], group["betas"], group["eps"]
+                    kernels.row_adam(p, p.grad, st, rows, found_inf, lr, betas, eps, decay)
                 else:
-                    self._step_torch(p, st, group, rows, found_inf)
+                    self._step_torch(p, st, group, rows, found_inf, decay)
         return None
 
     @staticmethod
-    def _step_torch(p, st: dict, group: dict, rows, found_inf) -> None:
+    def _step_torch(p, st: dict, group: dict, rows, found_inf, decay: float = 0.0) -> None:
         """The reference step of one parameter (any dtype, any device)."""
         b1, b2 = group["betas"]
         seen = p.grad.ne(0).any(-1) if rows is None else rows.to(p.device)
@@ -246,6 +256,9 @@ class RowAdam(torch.optim.Optimizer):
         m_hat, v_hat = m / (1 - b1**tc), v / (1 - b2**tc)
         update = group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
         p.sub_(torch.where(s, update, torch.zeros_like(update)))
+        if decay > 0:  # the ops `SelfCalibration._decay_poses` ran after the step, in order
+            rate = min(1.0, group["lr"] * decay)
+            p.mul_(1.0 - rate * s.to(p.dtype))
 
 
 def _fusable(p: torch.Tensor, st: dict) -> bool:

@@ -185,19 +185,32 @@ class SelfCalibration:
         elif self.optimizer.defaults.get("fused"):  # None: the placeholder, nothing to skip
             self.optimizer.found_inf, self.optimizer.grad_scale = found_inf, None
         self.optimizer.step()
-        if self.pose_optimizer is not None and self.pose_optimizer.param_groups[0]["lr"] > 0:
-            self.pose_optimizer.step(self._seen, found_inf=found_inf)
-        if self.poses is not None and self.cfg.refine_decay > 0:
+        decay = self.cfg.refine_decay if self.poses is not None else 0.0
+        if self._row_adam_steps():  # the row Adam decays the rows it steps, in its launch
+            self.pose_optimizer.step(self._seen, found_inf=found_inf, decay=decay)
+        elif decay > 0:  # plain Adam, the pose lr still 0, or no pose gradient
             self._decay_poses(found_inf)
         if self.thresholds is not None:
             self.thresholds.project()
         return True
 
+    def _row_adam_steps(self) -> bool:
+        """Whether the row Adam steps the poses now (lr > 0 and a gradient); it then also
+        applies refine_decay (`RowAdam.step`'s decay, the same ops as `_decay_poses`)."""
+        opt = self.pose_optimizer
+        return (
+            opt is not None and opt.param_groups[0]["lr"] > 0 and self.poses.delta.grad is not None
+        )
+
     @torch.no_grad()
     def _decay_poses(self, found_inf: torch.Tensor | None) -> None:
         """Shrink the corrections of the rows this batch saw by lr x refine_decay (decoupled
-        from Adam: its normalised step would scale a prior's pull up to the lr)."""
+        from Adam: its normalised step would scale a prior's pull up to the lr), after the
+        optimiser's step; skipped with it (found_inf). Where the row Adam steps the poses it
+        does this itself (`RowAdam.step(decay=...)`); this is for the other cases."""
         lr = next(g["lr"] for g in self.param_groups() if g["name"] == "poses")
+        if lr * self.cfg.refine_decay == 0:
+            return  # a factor of exactly 1: nothing changes
         seen = self._seen
         if found_inf is not None:
             seen = seen & found_inf.to(seen.device).eq(0)

@@ -22,7 +22,8 @@ A row whose rotation correction is exactly zero has R' = R, so its rays are the 
 rays `base_d` as given (the sampler's `render.generate_rays`): at δ = 0 the result is the
 sampler's rays bit for bit on every device, whatever the kernel's rounding of R'·d.
 
-`row_adam` is `pose_refine.RowAdam`'s lazy row-wise Adam step in one launch.
+`row_adam` is `pose_refine.RowAdam`'s lazy row-wise Adam step, with its decoupled decay of the
+rows stepped, in one launch.
 """
 
 from __future__ import annotations
@@ -456,13 +457,16 @@ def _row_adam(
     one_minus_b1: float,
     one_minus_b2: float,
     eps: float,
+    rate: float,
     param: wp.array2d(dtype=float),
     exp_avg: wp.array2d(dtype=float),
     exp_avg_sq: wp.array2d(dtype=float),
     row_steps: wp.array2d(dtype=float),
 ):
     """One row: Adam on it if it was seen (rows[g], or any nonzero gradient without `rows`)
-    and found_inf[0] is 0; otherwise the row, its moments and its step count stay."""
+    and found_inf[0] is 0, then the decoupled decay: the updated row times 1 − rate (rate in
+    [0, 1]; float32 like torch's `p * (1 − rate)`); otherwise the row, its moments and its
+    step count stay."""
     g = wp.tid()
     if found_inf[0] != 0.0:
         return
@@ -475,13 +479,15 @@ def _row_adam(
     row_steps[g, 0] = t
     bc1 = 1.0 - wp.pow(b1, t)
     bc2 = 1.0 - wp.pow(b2, t)
+    keep = 1.0 - rate
     for j in range(grad.shape[1]):
         gj = grad[g, j]
         m = exp_avg[g, j] * b1 + gj * one_minus_b1
         v = exp_avg_sq[g, j] * b2 + gj * gj * one_minus_b2
         exp_avg[g, j] = m
         exp_avg_sq[g, j] = v
-        param[g, j] = param[g, j] - lr * (m / bc1) / (wp.sqrt(v / bc2) + eps)
+        stepped = param[g, j] - lr * (m / bc1) / (wp.sqrt(v / bc2) + eps)
+        param[g, j] = stepped * keep  # Adam's step first, then the decay (AdamW's, decoupled)
 
 
 def row_adam(
@@ -493,19 +499,24 @@ def row_adam(
     lr: float,
     betas: tuple[float, float],
     eps: float,
+    decay: float = 0.0,
 ) -> None:
     """`RowAdam.step` on one (G, k) float32 parameter, in place, one launch.
 
     grad: (G, k) float32; state: exp_avg, exp_avg_sq (G, k) and row_steps (G, 1) float32,
     contiguous; rows: (G,) bool rows to step, or None (rows with a nonzero gradient);
-    found_inf: optional 0-dim or (1,) flag on the device, non-zero: no row steps.
+    found_inf: optional 0-dim or (1,) flag on the device, non-zero: no row steps (and no
+    decay); decay: decoupled decay (AdamW's): each stepped row, after its Adam update, times
+    1 − min(1, lr · decay) (0: none, bit for bit).
     """
+    if decay < 0:
+        raise ValueError(f"row_adam: decay must be >= 0, got {decay}")
     b1, b2 = (float(b) for b in betas)
     dev = param.device
     flag = _zero(dev) if found_inf is None else found_inf.to(dev, torch.float32).reshape(1)
     use_rows = rows is not None
     rows_u8 = (rows.to(dev, torch.bool) if use_rows else flag).view(torch.uint8)
     args = [grad.contiguous(), rows_u8.contiguous(), int(use_rows), flag.contiguous()]
-    args += [float(lr), b1, b2, 1.0 - b1, 1.0 - b2, float(eps)]
+    args += [float(lr), b1, b2, 1.0 - b1, 1.0 - b2, float(eps), min(1.0, float(lr) * decay)]
     args += [param, state["exp_avg"], state["exp_avg_sq"], state["row_steps"]]
     launch(_row_adam, param.shape[0], param, args)

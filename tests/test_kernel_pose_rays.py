@@ -164,3 +164,68 @@ def test_row_adam_kernel_without_found_inf_and_unseen_rows_kept():
     opt.step(torch.tensor([True, False, True, False]))
     assert (p[[1, 3]] == 0).all() and torch.allclose(p[[0, 2]], torch.full((2, 6), -1e-2))
     assert opt.state[p]["row_steps"][:, 0].tolist() == [1, 0, 1, 0]
+
+
+def _row_adam_float64(p, grads, rows, flags, lrs, decay, b1=0.9, b2=0.999, eps=1e-12):
+    """The lazy row Adam with its decoupled decay, row by row in float64: a row the batch saw
+    (on a step without found_inf) takes Adam's step, then is multiplied by 1 − min(1, lr·decay)."""
+    p = p.double().clone()
+    m, v, t = torch.zeros_like(p), torch.zeros_like(p), [0] * len(p)
+    for g_all, seen, skip, lr in zip(grads, rows, flags, lrs, strict=True):
+        for r in range(len(p)) if not skip else ():
+            if not seen[r]:
+                continue
+            g = g_all[r].double()
+            t[r] += 1
+            m[r] = b1 * m[r] + (1 - b1) * g
+            v[r] = b2 * v[r] + (1 - b2) * g * g
+            step = lr * (m[r] / (1 - b1 ** t[r])) / ((v[r] / (1 - b2 ** t[r])).sqrt() + eps)
+            p[r] = (p[r] - step) * (1 - min(1.0, lr * decay))
+    return p
+
+
+@pytest.mark.parametrize("decay", [0.0, 4.0, 150.0])  # lr·decay 0, up to 0.04, >= 1 at first
+@pytest.mark.parametrize("fused", [True, False])
+@pytest.mark.parametrize("device", DEVICES)
+def test_row_adam_decay_matches_float64(decay, fused, device):
+    """The decay of `RowAdam.step(decay=...)` (kernel and torch step): only on the rows the
+    batch saw, after their Adam step, none on a found_inf step; lr·decay >= 1 zeroes the row."""
+    gen = torch.Generator().manual_seed(5)
+    start = torch.randn(G, 6, generator=gen)
+    p = torch.nn.Parameter(start.clone().to(device))
+    opt = RowAdam([p], lr=1e-2, eps=1e-12, fused=fused)
+    grads, rows, flags, lrs = [], [], [], []
+    for step in range(8):
+        g = torch.randn(G, 6, generator=gen)
+        seen = torch.rand(G, generator=gen) < 0.5
+        seen[step % G] = True  # every step sees a row
+        lr = 1e-2 * 0.7**step  # lr·decay = 1.5 on the first step with decay 150, 0.18 at last
+        before = p.detach().clone()
+        p.grad = g.to(device)
+        opt.param_groups[0]["lr"] = lr
+        skip = step == 3
+        opt.step(seen.to(device), found_inf=torch.tensor(float(skip), device=device), decay=decay)
+        after = p.detach()
+        grads, rows, flags, lrs = grads + [g], rows + [seen], flags + [skip], lrs + [lr]
+        if skip or not seen.all():  # rows not stepped keep every bit
+            keep = torch.ones(G, dtype=torch.bool) if skip else ~seen
+            assert torch.equal(after[keep.to(device)], before[keep.to(device)])
+        if lr * decay >= 1 and not skip:  # the clamp: rows seen are zeroed, not flipped
+            assert (after[seen.to(device)] == 0).all() and (before[seen.to(device)] != 0).any()
+    want = _row_adam_float64(start, grads, rows, flags, lrs, decay)
+    torch.testing.assert_close(p.detach().cpu().double(), want, atol=1e-7, rtol=1e-5)
+    # decay 0 is no decay, bit for bit: the same steps without the argument
+    if decay == 0.0:
+        q = torch.nn.Parameter(start.clone().to(device))
+        opt_q = RowAdam([q], lr=1e-2, eps=1e-12, fused=fused)
+        for g, seen, skip, lr in zip(grads, rows, flags, lrs, strict=True):
+            q.grad, opt_q.param_groups[0]["lr"] = g.to(device), lr
+            opt_q.step(seen.to(device), found_inf=torch.tensor(float(skip), device=device))
+        assert torch.equal(q.detach(), p.detach())
+
+
+def test_row_adam_decay_rejects_a_negative_decay():
+    p = torch.nn.Parameter(torch.zeros(2, 6))
+    p.grad = torch.ones(2, 6)
+    with pytest.raises(ValueError, match="decay"):
+        RowAdam([p], lr=1e-2).step(torch.tensor([True, False]), decay=-1.0)

@@ -161,11 +161,16 @@ def _pose_calibration(**cfg):
     return SelfCalibration(TrainConfig(refine_poses=True, **cfg), s, (0.25, 0.25), BallField())
 
 
-def test_decay_pulls_only_the_rows_seen_back_and_skips_with_the_step():
+@pytest.mark.parametrize("optimizer", ["row-adam", "adam"])
+def test_decay_pulls_only_the_rows_seen_back_and_skips_with_the_step(optimizer):
     """refine_decay shrinks the corrections of the rows the batch saw by lr x decay (a row's
     gradient is zero here, so Adam moves nothing), leaves the others, and a non-finite step
-    (found_inf) shrinks nothing."""
-    cal = _pose_calibration(refine_decay=40.0, refine_lr=1e-2, refine_warmup=0.0)
+    (found_inf) shrinks nothing; with the row Adam (its step's decay) and with plain Adam
+    (`_decay_poses`; fused, as a device-paced step has it, to skip on found_inf)."""
+    cal = _pose_calibration(
+        refine_decay=40.0, refine_lr=1e-2, refine_warmup=0.0, refine_optimizer=optimizer,
+        step_mode="device",
+    )  # fmt: skip
     cal.before_step(progress=0.5, field_lr_scale=1.0)
     lr = pose_lr(cal.cfg, 0.5)
     start = torch.randn_like(cal.poses.delta) * 0.01
@@ -202,3 +207,57 @@ def test_refining_raises_the_windows_per_step(scene_config):
     assert few.windows_per_step == 32
     more = train_preset("fast", "ngp", windows_per_step=128, refine_poses=True).resolved(sc)
     assert more.windows_per_step == 128
+
+
+def _old_step(cal, found_inf):
+    """SelfCalibration.step's pose part as it was: the row Adam's step, then `_decay_poses`."""
+    cal.pose_optimizer.step(cal._seen, found_inf=found_inf)
+    cal._decay_poses(found_inf)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_row_adam_decay_is_the_old_step_then_decay(fused, monkeypatch):
+    """The row Adam's decay (one launch) gives the corrections of its step followed by the
+    separate `_decay_poses` ops, over steps with changing lr, rows and a skipped one; the
+    hot path runs no `_decay_poses`. The decay matters here: without it they differ."""
+    kw = {"refine_decay": 40.0, "refine_lr": 2e-2, "refine_warmup": 0.0, "step_mode": "device"}
+    new, old, plain = (_pose_calibration(**kw) for _ in range(3))
+    gen = torch.Generator().manual_seed(3)
+    start = torch.randn(new.poses.delta.shape, generator=gen) * 0.01
+    for cal in (new, old, plain):
+        cal.pose_optimizer.fused = fused
+        cal.poses.delta.data.copy_(start)
+    monkeypatch.setattr(new, "_decay_poses", lambda *_: pytest.fail("decay outside the step"))
+    for step in range(6):
+        grad = torch.randn(start.shape, generator=gen) * 1e-3
+        seen = torch.rand(len(start), generator=gen) < 0.5
+        found_inf = torch.tensor(float(step == 2))
+        for cal in (new, old, plain):
+            cal.before_step(progress=0.3 + 0.1 * step, field_lr_scale=1.0)
+            cal._seen, cal.poses.delta.grad = seen, grad.clone()
+        assert new.step(found_inf=found_inf)
+        _old_step(old, found_inf)
+        plain.pose_optimizer.step(seen, found_inf=found_inf)  # no decay at all
+        torch.testing.assert_close(new.poses.delta, old.poses.delta, rtol=1e-6, atol=1e-10)
+    assert (new.poses.delta - plain.poses.delta).abs().max() > 1e-4
+    steps = new.pose_optimizer.state[new.poses.delta]["row_steps"]
+    assert torch.equal(steps, old.pose_optimizer.state[old.poses.delta]["row_steps"])
+    assert 0 < steps.max() <= 5  # the skipped step counted for no row
+
+
+def test_decay_without_a_row_adam_step_still_happens():
+    """No pose gradient (the row Adam skips the parameter): `_decay_poses` still shrinks the
+    rows seen; a pose lr of 0 (before refine_start) leaves every bit."""
+    cal = _pose_calibration(refine_decay=40.0, refine_lr=1e-2, refine_warmup=0.0)
+    start = torch.randn_like(cal.poses.delta) * 0.01
+    cal.poses.delta.data.copy_(start)
+    cal._seen = torch.arange(len(start)) % 2 == 0
+    cal.before_step(progress=0.0, field_lr_scale=1.0)  # lr 0
+    cal.poses.delta.grad = torch.ones_like(start)
+    assert cal.step() and torch.equal(cal.poses.delta.detach(), start)
+    cal.before_step(progress=0.5, field_lr_scale=1.0)
+    cal.zero_grad()
+    assert cal.step()
+    rate = pose_lr(cal.cfg, 0.5) * 40.0
+    want = torch.where(cal._seen[:, None], start * (1 - rate), start)
+    torch.testing.assert_close(cal.poses.delta.detach(), want, rtol=1e-6, atol=0)
