@@ -47,12 +47,12 @@ class FiniteGuard:
 
         Returns found_inf (0-dim, 1.0 = skip); the counters are updated in place.
         """
-        self.found_inf.copy_(torch.logical_not(torch.isfinite(loss.detach())))
+        torch.logical_not(torch.isfinite(loss), out=self.found_inf)  # 1.0: not finite
         grads = [p.grad for p in self.params if p.grad is not None]
         if grads:
-            # adds 1 to found_inf on any inf/NaN (scaling by one leaves the gradients alone)
+            # sets found_inf to 1 (never adds) on any inf/NaN, so it stays 0 or 1; scaling by
+            # one leaves the gradients alone
             torch._amp_foreach_non_finite_check_and_unscale_(grads, self.found_inf, self.one)
-        self.found_inf.clamp_(max=1.0)
         optimizer.found_inf = self.found_inf
         optimizer.grad_scale = None
         self.run.add_(self.found_inf).mul_(self.found_inf)
@@ -91,11 +91,18 @@ class PendingStats:
             for k, v in d.items():
                 if isinstance(v, torch.Tensor):
                     slots.append((d, k))
-                    values.append(v.detach().float().reshape(()))
-        extra = list(extra or [])
-        values += [e.detach().float().reshape(()) for e in extra]
+                    values.append(device_scalar(v))
+        values += [device_scalar(e) for e in extra or []]
         host = torch.stack(values).tolist() if values else []
         for (d, k), v in zip(slots, host, strict=False):
             d[k] = v
         done, self.pending = self.pending, []
         return done, host[len(slots) :]
+
+
+def device_scalar(v: torch.Tensor) -> torch.Tensor:
+    """v (one value) as a 0-dim float32 tensor without a gradient: v itself where it already
+    is one (the usual stat: no op dispatched for it, at the step or at the flush)."""
+    if v.dtype == torch.float32 and v.ndim == 0 and not v.requires_grad:
+        return v
+    return v.detach().float().reshape(())

@@ -18,6 +18,11 @@ import torch
 LUMA_709 = (0.2126, 0.7152, 0.0722)
 
 
+def _float32(t: torch.Tensor) -> torch.Tensor:
+    """t in float32: t itself where it is (a no-op `.float()` still dispatches an op)."""
+    return t if t.dtype == torch.float32 else t.float()
+
+
 def linear_intensity(
     rgb: torch.Tensor, channel: torch.Tensor | None, gamma: float = 2.2
 ) -> torch.Tensor:
@@ -26,7 +31,7 @@ def linear_intensity(
     channel: (B,) int64 Bayer channel (0 R, 1 G, 2 B), or None for a mono sensor (luminance).
     Computed in float32 whatever the autocast dtype of `rgb`.
     """
-    lin = rgb.float().clamp_min(0.0) ** gamma
+    lin = _float32(rgb).clamp_min(0.0) ** gamma
     if channel is None:
         return lin @ lin.new_tensor(LUMA_709)
     return lin.gather(1, channel.view(-1, 1)).squeeze(1)
@@ -64,10 +69,16 @@ def event_loss(
     weight: (B,) float32 0/1, the pixels that count (None: all); the mean is over them.
     """
     pred = event_prediction(rgb0, rgb1, channel, gamma, eps)
-    err = (pred - target.float()) ** 2
+    err = (pred - _float32(target)) ** 2
     if weight is None:
         return torch.mean(err)
     return (err * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def _halves(t: torch.Tensor, b: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(t[:b], t[b:]) in one op: the backward of a split is one concatenation, that of two
+    slices two zero-filled copies and a sum (the same gradient)."""
+    return t.split([b, t.shape[0] - b])
 
 
 def total_loss(
@@ -95,17 +106,18 @@ def total_loss(
     weight = None
     parts = {}
     if out.get("valid") is not None:
-        weight = (out["valid"][:b] & out["valid"][b:]).float()
+        valid0, valid1 = _halves(out["valid"], b)
+        weight = (valid0 & valid1).float()
         parts["dropped"] = 1.0 - weight.mean()
-    ev = event_loss(rgb[:b], rgb[b:], target, channel, gamma, eps, weight)
+    ev = event_loss(*_halves(rgb, b), target, channel, gamma, eps, weight)
     loss = ev
     parts["event"] = ev
     if "rgb_coarse" in out:
         rc = out["rgb_coarse"]
-        evc = event_loss(rc[:b], rc[b:], target, channel, gamma, eps, weight)
+        evc = event_loss(*_halves(rc, b), target, channel, gamma, eps, weight)
         loss = loss + evc
         parts["event_coarse"] = evc
     if distortion_weight > 0 and "distortion" in out:
         loss = loss + distortion_weight * out["distortion"]
         parts["distortion"] = out["distortion"]
-    return loss, {k: v.detach() for k, v in parts.items()}
+    return loss, {k: v.detach() if v.requires_grad else v for k, v in parts.items()}

@@ -111,6 +111,8 @@ class RayBatch:
     camera-frame directions of the pixels; pose_idx (2B,) int64 grid row of each ray's pose
     (rays_o[i] is row pose_idx[i]'s centre); parts (B, 2) the target's polarity parts [a, b]
     with E = a·C_pos + b·C_neg (`threshold.py`).
+    positive_share: () float32 mean of `positive`, made for the sampler's whole block at once
+    (None: not made; the reader takes the mean).
     """
 
     rays_o: torch.Tensor
@@ -123,6 +125,7 @@ class RayBatch:
     dirs: torch.Tensor | None = None
     pose_idx: torch.Tensor | None = None
     parts: torch.Tensor | None = None
+    positive_share: torch.Tensor | None = None
 
 
 def _load_window_sum():
@@ -356,30 +359,28 @@ class RaySampler:
         b = self.n_windows * n
         rays_o = torch.stack([o0.reshape(k, b, 3), o1.reshape(k, b, 3)], 1)
         rays_d = torch.stack([d0.reshape(k, b, 3), d1.reshape(k, b, 3)], 1)
-        extras = [{} for _ in range(k)]
+        # every step's share of event pixels (a stat): four ops for the block, not two a step
+        extras = [{"positive_share": s} for s in positive.reshape(k, b).float().mean(1).unbind(0)]
         if self.with_poses:
             rows = torch.stack([p0[win].reshape(k, b), p1[win].reshape(k, b)], 1)
-            for i, (e, d) in enumerate(zip(extras, dirs.reshape(k, b, 3), strict=True)):
-                e.update(dirs=d, pose_idx=rows[i].reshape(2 * b))
+            pose_idx = rows.reshape(k, 2 * b).unbind(0)
+            for e, d, r in zip(extras, dirs.reshape(k, b, 3).unbind(0), pose_idx, strict=True):
+                e.update(dirs=d, pose_idx=r)
         if self.with_parts:
             ab = self.parts(pix, t0[win_np], t1[win_np]).reshape(k, b, 2)
             for e, p in zip(extras, ab, strict=True):
                 e["parts"] = p
-        pix, target, positive = pix.reshape(k, b), target.reshape(k, b), positive.reshape(k, b)
-        channel = None if channel is None else channel.reshape(k, b)
-        return [
-            RayBatch(
-                rays_o[i].reshape(2 * b, 3),
-                rays_d[i].reshape(2 * b, 3),
-                pix[i],
-                None if channel is None else channel[i],
-                target[i],
-                positive[i],
-                self.n_windows,
-                **extras[i],
-            )
-            for i in range(k)
-        ]
+        # each step's views of the block's tensors: one unbind for all k, not k indexings
+        views = zip(
+            rays_o.reshape(k, 2 * b, 3).unbind(0),
+            rays_d.reshape(k, 2 * b, 3).unbind(0),
+            pix.reshape(k, b).unbind(0),
+            [None] * k if channel is None else channel.reshape(k, b).unbind(0),
+            target.reshape(k, b).unbind(0),
+            positive.reshape(k, b).unbind(0),
+            strict=True,
+        )
+        return [RayBatch(*v, self.n_windows, **e) for v, e in zip(views, extras, strict=True)]
 
     def _rng_state(self) -> dict:
         return {"windows": self.windows.state_dict(), "gen": self.gen.get_state()}

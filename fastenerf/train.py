@@ -25,7 +25,7 @@ from . import train_state
 from .config import TrainConfig
 from .data.events import EventIndex
 from .data.formats.native import Scene
-from .device_step import FiniteGuard, PendingStats, supports_device_guard
+from .device_step import FiniteGuard, PendingStats, device_scalar, supports_device_guard
 from .errors import InputError
 from .fields import Field, make_field
 from .hooks import Hook, default_hooks
@@ -427,22 +427,25 @@ class Trainer:
         """The step's stats; on the device path its tensor values stay tensors until the next
         `flush_stats` (every STATS_FLUSH_EVERY steps, or when a hook asks)."""
         on_device = self.guard is not None
-        host = (lambda v: v.detach().float()) if on_device else float
+        host = device_scalar if on_device else float
         n_rays = int(batch.rays_o.shape[0])
+        positive = batch.positive_share
+        positive = batch.positive.float().mean() if positive is None else positive
         stats = {
             "step": self.step_count,
             "loss": loss_value,
             "rays_per_s": n_rays / max(dt, 1e-9),
             "elapsed_s": self.train_seconds,
             "lr": lr,
-            "positive_fraction": host(batch.positive.float().mean()),
+            "positive_fraction": host(positive),
             **{k: host(v) for k, v in parts.items()},
         }
         # the samples the field ran on, and the marched ones where compaction kept fewer
         for key, name in (("n_samples", "samples_per_ray"), ("n_marched", "marched_per_ray")):
             if key in out:
                 n = out[key]
-                stats[name] = (host(n) if torch.is_tensor(n) else n) / n_rays
+                n = float(n) if torch.is_tensor(n) and not on_device else n
+                stats[name] = n / n_rays  # a device count: one division, int32 -> float32
         # the calibration's estimates are read on the host: every step on the plain path, at
         # the flush steps on the device-paced one
         if self.selfcal is not None and (not on_device or self._flush_due()):

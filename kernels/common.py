@@ -60,6 +60,19 @@ def fast_view(t: torch.Tensor, dtype=None) -> wp.array:
     return a
 
 
+def as_float32(t: torch.Tensor, device: torch.device | None = None) -> torch.Tensor:
+    """t as a contiguous float32 tensor on `device` (None: t's): t itself where it is one.
+
+    For a kernel's inputs: a `.float()`, `.to()` or `.detach()` that changes nothing still
+    dispatches an op (a few µs of host time a call, every step); a Warp view needs no detaching.
+    """
+    if device is not None and t.device != torch.device(device):
+        t = t.to(device)
+    if t.dtype == torch.float32 and t.is_contiguous():
+        return t
+    return t.float().contiguous()
+
+
 def fast_stream(t: torch.Tensor):
     """Warp stream for torch's current stream on t's device (None on CPU), cached."""
     if t.device.type != "cuda":

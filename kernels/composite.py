@@ -29,7 +29,7 @@ import functools
 import torch
 import warp as wp
 
-from .common import fast_view, init, launch
+from .common import as_float32, fast_view, init, launch
 
 T_MIN = 1e-4
 """Transmittance below which a ray stops (instant-ngp's early termination)."""
@@ -198,12 +198,12 @@ def _bg_array(background: torch.Tensor | None, R: int, dev: torch.device) -> tor
     device (reading it on the host would sync every call)."""
     if background is None:
         return _zero_bg(torch.device(dev))
-    bg = background.detach()
+    bg = background
     if bg.numel() == 3:
         bg = bg.reshape(1, 3)
     elif bg.shape != (R, 3):
         raise ValueError(f"background must be (3,) or ({R}, 3), got {tuple(bg.shape)}")
-    return bg.to(device=dev, dtype=torch.float32).contiguous()
+    return as_float32(bg, dev)
 
 
 def _check_packed(sigmas, t_starts, t_ends, packed_info) -> None:
@@ -215,7 +215,7 @@ def _check_packed(sigmas, t_starts, t_ends, packed_info) -> None:
 
 
 def _grad(g: torch.Tensor | None, dummy: torch.Tensor) -> torch.Tensor:
-    return dummy if g is None else g.detach().float().contiguous()
+    return dummy if g is None else as_float32(g)
 
 
 class _Composite(torch.autograd.Function):
@@ -223,10 +223,7 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, sigmas, rgbs, t_starts, t_ends, packed_info, background):
         init()
         ctx.set_materialize_grads(False)
-        sigmas = sigmas.detach().float().contiguous()
-        rgbs = rgbs.detach().float().contiguous()
-        t_starts = t_starts.detach().float().contiguous()
-        t_ends = t_ends.detach().float().contiguous()
+        sigmas, rgbs, t_starts, t_ends = (as_float32(t) for t in (sigmas, rgbs, t_starts, t_ends))
         packed_info = packed_info.contiguous()
         R, S, dev = packed_info.shape[0], sigmas.shape[0], sigmas.device
         bg = _bg_array(background, R, dev)
@@ -410,9 +407,7 @@ class _Distortion(torch.autograd.Function):
     @staticmethod
     def forward(ctx, weights, t_starts, t_ends, packed_info):
         init()
-        weights = weights.detach().float().contiguous()
-        t_starts = t_starts.detach().float().contiguous()
-        t_ends = t_ends.detach().float().contiguous()
+        weights, t_starts, t_ends = (as_float32(t) for t in (weights, t_starts, t_ends))
         packed_info = packed_info.contiguous()
         R, dev = packed_info.shape[0], weights.device
         loss = _empty(R, dtype=torch.float32, device=dev)
@@ -450,7 +445,7 @@ class _Distortion(torch.autograd.Function):
                     t_ends,
                     fast_view(packed_info, wp.vec2i),
                     fast_view(totals, wp.vec2),
-                    g_loss.detach().float().contiguous(),
+                    as_float32(g_loss),
                     grad,
                 ],
             )

@@ -33,7 +33,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from .common import fast_view, init, launch
+from .common import as_float32, fast_view, init, launch
 from .composite import one_minus_exp_neg, optical_depth
 from .raymarch_fixed import (
     FixedSamples,
@@ -124,10 +124,10 @@ def _inputs(sigmas, packed_info, t_starts, t_ends, early_stop_eps, alpha_thresho
         if not 0.0 <= v <= 1.0:
             raise ValueError(f"{name} must be in [0, 1], got {v}")
     return (
-        sigmas.detach().float().contiguous(),
+        as_float32(sigmas),
         packed_info.contiguous(),
-        t_starts.detach().float().contiguous(),
-        t_ends.detach().float().contiguous(),
+        as_float32(t_starts),
+        as_float32(t_ends),
     )
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 import warp as wp
 
-from .common import fast_view, init, launch
+from .common import as_float32, fast_view, init, launch
 
 init()
 
@@ -87,7 +87,7 @@ class _RayPoints(torch.autograd.Function):
         t, packed_info = ctx.saved_tensors
         grad_x = torch.zeros(len(t), 3, device=t.device) if grad_x is None else grad_x
         grad_dirs = torch.zeros_like(grad_x) if grad_dirs is None else grad_dirs
-        grad_x, grad_dirs = grad_x.float().contiguous(), grad_dirs.float().contiguous()
+        grad_x, grad_dirs = as_float32(grad_x), as_float32(grad_dirs)
         grad_o = torch.empty(ctx.n_rays, 3, dtype=torch.float32, device=t.device)
         grad_d = torch.empty_like(grad_o)
         launch(
@@ -131,7 +131,7 @@ def ray_points(
     return _RayPoints.apply(
         rays_o.contiguous(),
         rays_d.contiguous(),
-        t.float().contiguous(),
+        as_float32(t),
         ray_indices.contiguous(),
         packed_info.contiguous(),
     )

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import torch
 import warp as wp
 
-from .common import fast_view, init, launch
+from .common import as_float32, fast_view, init, launch
 from .occupancy import OccupancyGrid, bit_at, cell_lo, cell_size, default_step_size, locate_func
 
 _empty = torch.empty
@@ -337,8 +337,8 @@ def ray_aabb(
     """
     init()
     a = _box_of(aabb)
-    rays_o = rays_o.float().contiguous()
-    rays_d = rays_d.float().contiguous()
+    rays_o = as_float32(rays_o)
+    rays_d = as_float32(rays_d)
     R = rays_o.shape[0]
     t_near = _empty(R, dtype=torch.float32, device=rays_o.device)
     t_far = _empty(R, dtype=torch.float32, device=rays_o.device)
@@ -416,11 +416,11 @@ def plan_march(
     rule = step_rule(float(cone_angle), float(dt_min), float(dt_max))
     if max_samples < 0:
         raise ValueError(f"max_samples must be >= 0, got {max_samples}")
-    rays_o = rays_o.float().contiguous()
-    rays_d = rays_d.float().contiguous()
+    rays_o = as_float32(rays_o)
+    rays_d = as_float32(rays_d)
     R, dev = rays_o.shape[0], rays_o.device
     if jitter is not None:
-        jitter = jitter.to(device=dev, dtype=torch.float32).contiguous()
+        jitter = as_float32(jitter, dev)
         if jitter.shape != (R,):
             raise ValueError(f"jitter must be ({R},), got {tuple(jitter.shape)}")
     if grid is not None:

@@ -22,6 +22,7 @@ samples (not per packed slice) must mask slots >= n_used themselves.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import torch
@@ -127,15 +128,21 @@ def empty_fixed_samples(n_rays: int, capacity: int, device) -> FixedSamples:
     )
 
 
+@functools.cache
+def _dtypes() -> tuple[torch.dtype, ...]:
+    """The dtypes of `empty_fixed_samples`' buffers, in field order (found once: a check every
+    step that allocated its reference buffers would cost seven ops)."""
+    return tuple(t.dtype for t in empty_fixed_samples(0, 0, "cpu"))
+
+
 def check_fixed_out(out: FixedSamples, R: int, capacity: int, dev: torch.device) -> None:
     """ValueError unless `out` holds R rays' and `capacity` slots' contiguous buffers of
     `empty_fixed_samples`' dtypes on `dev`."""
     want = FixedSamples((R, 2), (capacity,), (capacity,), (capacity,), (R,), (1,), (1,))
-    like = empty_fixed_samples(0, 0, "cpu")
-    for name, t, shape, ref in zip(FixedSamples._fields, out, want, like, strict=True):
-        if tuple(t.shape) != shape or t.dtype != ref.dtype or t.device != dev:
+    for name, t, shape, dtype in zip(FixedSamples._fields, out, want, _dtypes(), strict=True):
+        if tuple(t.shape) != shape or t.dtype != dtype or t.device != dev:
             raise ValueError(
-                f"out.{name} must be {shape} {ref.dtype} on {dev}, got {tuple(t.shape)} "
+                f"out.{name} must be {shape} {dtype} on {dev}, got {tuple(t.shape)} "
                 f"{t.dtype} on {t.device}"
             )
         if not t.is_contiguous():

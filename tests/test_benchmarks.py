@@ -292,6 +292,41 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     assert "CPU numbers" in (out / "profile_step.md").read_text()
 
 
+def test_step_ops_counts_every_stage_on_cpu(tiny_scene, tmp_path, capsys):
+    """`python -m benchmarks.step_ops`: aten ops, autograd nodes and Warp launches per step,
+    by the step's named ranges; a missing scene folder is one line and exit code 2."""
+    from benchmarks import step_ops
+
+    out = tmp_path / "ops"
+    # the counted steps hold the 17th step: a new sampler block and an occupancy update
+    argv = ["--scene", str(tiny_scene), "--warmup", "15", "--steps", "2", "--rays", "32"]
+    assert step_ops.main(argv + ["--out", str(out)]) == 0
+    res = json.loads((out / "step_ops.json").read_text())
+    per = res["per_step"]
+    for stage in ("grid_update", "sample_rays", "march", "field", "composite", "loss"):
+        assert per[stage]["aten"] >= per[stage]["aten_top"] > 0, stage
+    assert per["backward"]["aten_top"] > 0 and per["optimizer"]["aten_top"] > 0
+    assert per["backward"]["autograd"] > 0 and per["field"]["warp"] > 0
+    assert per["march"]["warp"] > 0 and per["composite"]["warp"] > 0
+    total = per["total"]
+    assert total["aten_top"] == pytest.approx(
+        sum(per[s]["aten_top"] for s in step_ops.STAGES) + per["other"]["aten_top"]
+    )
+    assert res["step_mode"] == "device" and res["amp"] and res["steps"] == 2
+    assert any(k.startswith("warp::") for k in res["ops_per_step"]["field"])
+    md = (out / "step_ops.md").read_text()
+    assert "| backward |" in md and "**total**" in md
+    # an earlier run's counts beside this one's
+    capsys.readouterr()
+    argv2 = argv + ["--out", str(tmp_path / "ops2"), "--baseline", str(out / "step_ops.json")]
+    assert step_ops.main(argv2 + ["--no-amp", "--step-mode", "plain"]) == 0
+    assert " → " in (tmp_path / "ops2" / "step_ops.md").read_text()
+    capsys.readouterr()
+    assert step_ops.main(["--scene", str(tmp_path / "missing"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("step_ops: error:") and len(err.splitlines()) == 1
+
+
 def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     """benchmarks.study_sweep reads one pose-error.json per (scene, option, level) folder of
     every sweep given, tables them (names prefixed by the other sweeps' folders) and plots

@@ -465,6 +465,22 @@ def test_ngp_grid_follows_module_device_and_survives_dtype_casts(make):
         assert torch.equal(out[k], ref[k]), k
 
 
+def test_ngp_normalises_points_in_the_box_it_holds_now(make):
+    # the box's corner and size are made once and kept: a box written into the buffer (as
+    # load_state_dict does) or a move must make them anew
+    f = make("ngp")
+    x = torch.zeros(1, 3)
+    old = f.aabb.clone()
+    u = f._normalise(x)
+    with torch.no_grad():
+        f.aabb.copy_(torch.tensor([-1.0, -1.0, -1.0, 3.0, 3.0, 3.0]))
+    assert torch.equal(f._normalise(x), torch.full((1, 3), 0.25))
+    with torch.no_grad():
+        f.aabb.copy_(old)
+    f.double()  # a new buffer
+    assert torch.equal(f._normalise(x), u)
+
+
 def test_new_ngp_field_is_a_fog_of_fixed_optical_depth_at_any_scale():
     # A new field starts as fog of optical depth INIT_OPTICAL_DEPTH across the box whatever
     # its size (transparent starts stall the event loss: RESULTS.md); old runs keep bias 0.

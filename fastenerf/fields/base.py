@@ -95,12 +95,15 @@ def park_non_finite(rays_o: torch.Tensor, rays_d: torch.Tensor):
     """Training rays with a NaN or inf value replaced by a harmless one (kernels index memory
     with them; an MLP's NaN would spread to every weight's gradient), without a host read.
 
-    Returns (rays_o, rays_d, bad (R,) bool); the caller makes the bad rays' pixels NaN, so
-    the step's loss is NaN and the trainer's guard skips it.
+    Returns (rays_o, rays_d, bad (R, 1) bool, shaped to broadcast over a pixel's colour); the
+    caller makes the bad rays' pixels NaN, so the step's loss is NaN and the trainer's guard
+    skips it.
     """
-    bad = ~(torch.isfinite(rays_o).all(-1) & torch.isfinite(rays_d).all(-1))
-    rays_o = torch.where(bad[:, None], torch.zeros_like(rays_o), rays_o)
-    rays_d = torch.where(bad[:, None], torch.full_like(rays_d, 3**-0.5), rays_d)
+    # one check of both (R, 6) and scalar fills: fewer ops on a step's path than two checks,
+    # an `&` and two constant tensors
+    bad = ~torch.isfinite(torch.cat([rays_o, rays_d], -1)).all(-1, keepdim=True)
+    rays_o = torch.where(bad, 0.0, rays_o)
+    rays_d = torch.where(bad, 3**-0.5, rays_d)
     return rays_o.contiguous(), rays_d.contiguous(), bad
 
 

@@ -25,6 +25,7 @@ from ..backends import NGPOptions, parse_options
 from ..clip import clip_aabb, clip_density
 from ..config import CylinderConfig, SceneConfig
 from ..errors import InputError
+from ..kernels.common import as_float32
 from ..kernels.composite import composite, distortion_loss
 from ..kernels.hashgrid import hash_grid_encode, init_table
 from ..kernels.occupancy import OccupancyGrid
@@ -59,20 +60,25 @@ class _TruncExp(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, hi: float):
-        xc = x.clamp(max=hi)
-        ctx.save_for_backward(xc)
-        return torch.exp(xc)
+        y = torch.exp(x.clamp(max=hi))
+        ctx.save_for_backward(y)  # the derivative: exp(min(x, hi)) is y itself
+        return y
 
     @staticmethod
     def backward(ctx, g):
-        (xc,) = ctx.saved_tensors
-        return g * torch.exp(xc), None
+        (y,) = ctx.saved_tensors
+        return g * y, None
 
 
 def trunc_exp(x: torch.Tensor, hi: float = 15.0) -> torch.Tensor:
     """exp(min(x, hi)), same shape and dtype as x; gradient g · exp(min(x, hi)), finite for any
     finite or infinite x (NaN stays NaN)."""
     return _TruncExp.apply(x, hi)
+
+
+def _cast(t: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """t in `dtype`: t itself where it already is (a no-op `.to` still dispatches an op)."""
+    return t if t.dtype == dtype else t.to(dtype)
 
 
 def _n_used(samples) -> int | torch.Tensor:
@@ -115,6 +121,8 @@ class NGPField(Field):
     _pruned_out = None
     _pruned_key = None
     _capacity_cone = None
+    _box_key = None
+    _box = None
     level_weights_mode: str = "field"  # or "gradient" (fields/level_weights.py)
 
     def __init__(
@@ -192,15 +200,25 @@ class NGPField(Field):
         }
 
     # -- field ---------------------------------------------------------------------------
+    def _box_corner_and_size(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lo (3,), hi - lo (3,)) of `aabb`, made once per box, not three ops every call: the
+        buffer's address and version (bumped by a load into it) say when to make them anew."""
+        key = (self.aabb.data_ptr(), self.aabb._version)
+        if self._box_key != key:
+            lo, hi = self.aabb[:3], self.aabb[3:]
+            self._box, self._box_key = (lo, hi - lo), key
+        return self._box
+
     def _normalise(self, x: torch.Tensor) -> torch.Tensor:
-        lo, hi = self.aabb[:3], self.aabb[3:]
+        lo, size = self._box_corner_and_size()
         # a non-finite point becomes the box's centre: the kernels index memory with it
-        u = torch.nan_to_num((x - lo) / (hi - lo), nan=0.5, posinf=1.0, neginf=0.0)
+        u = torch.nan_to_num((x - lo) / size, nan=0.5, posinf=1.0, neginf=0.0)
         return u.clamp(0.0, 1.0).contiguous()
 
     def _geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3)."""
-        xn, table, w, cfg = self._normalise(x.float()), self.table.float(), None, self.grid_cfg
+        xn, w, cfg = self._normalise(_cast(x, torch.float32)), None, self.grid_cfg
+        table = _cast(self.table, torch.float32)
         if self.level_weights is not None:
             w = self.level_weights.repeat_interleave(cfg.n_features)
         if w is not None and self.level_weights_mode == "gradient":
@@ -210,20 +228,25 @@ class NGPField(Field):
         else:
             feats = hash_grid_encode(xn, table, cfg)
             feats = feats if w is None else feats * w
-        h = self.density_net(feats.to(self.density_net[0].weight.dtype))
+        h = self.density_net(_cast(feats, self.density_net[0].weight.dtype))
         net = self.options.network
-        sigma = trunc_exp(h[:, 0].float() + net.density_bias, net.max_log_density)
+        # one split, not an index and a slice: its backward is one concatenation of the two
+        # gradients, theirs two zero-filled copies and a sum
+        logit, geo = h.split([1, h.shape[1] - 1], dim=1)
+        logit = _cast(logit.squeeze(1), torch.float32) + net.density_bias
+        sigma = trunc_exp(logit, net.max_log_density)
         if self.cylinder is not None:
             sigma = clip_density(sigma, x, self.cylinder)
-        return sigma, h[:, 1:]
+        return sigma, geo
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
         check_points("x", x, "NGPField.density")
         return self._geometry(x)[0]
 
     def _radiance(self, geo: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        sh = sh_encode(d.float().contiguous())
-        return torch.sigmoid(self.color_net(torch.cat([geo, sh.to(geo.dtype)], -1)).float())
+        sh = sh_encode(as_float32(d))
+        rgb = self.color_net(torch.cat([geo, _cast(sh, geo.dtype)], -1))
+        return torch.sigmoid(_cast(rgb, torch.float32))
 
     def color(self, x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         check_points("x", x, "NGPField.color")
@@ -238,9 +261,7 @@ class NGPField(Field):
                 f"NGPField.render: rays_o {tuple(rays_o.shape)} and rays_d "
                 f"{tuple(rays_d.shape)} differ in shape"
             )
-        rays_o = rays_o.float().contiguous()
-        rays_d = rays_d.float().contiguous()
-        bad = None
+        rays_o, rays_d, bad = as_float32(rays_o), as_float32(rays_d), None
         if train:  # checked on the device, not read: see check_points
             rays_o, rays_d, bad = park_non_finite(rays_o, rays_d)
         with torch.no_grad(), record_function("march"):
@@ -258,7 +279,7 @@ class NGPField(Field):
         with record_function("composite"):
             out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
         if bad is not None:  # a non-finite ray's pixel is NaN, so the step is skipped
-            out["rgb"] = torch.where(bad[:, None], float("nan"), out["rgb"])
+            out["rgb"] = torch.where(bad, float("nan"), out["rgb"])
         res: RenderOutput = {
             "rgb": out["rgb"],
             "depth": out["depth"],

@@ -326,7 +326,7 @@ class VanillaField(Field):
         if bad is not None:  # the step's loss is then NaN, and the step is skipped
             for k in ("rgb", "rgb_coarse"):
                 if k in out:
-                    out[k] = torch.where(bad[:, None], float("nan"), out[k])
+                    out[k] = torch.where(bad, float("nan"), out[k])
         return out
 
 
