@@ -8,7 +8,8 @@
 # Everything lands in OUT; after every stage OUT/partial.tgz holds the logs and JSONs so far.
 # Stages (STAGES, in this order; each can be left out):
 #   kernels   marching/compositing vs PyTorch, the fixed-capacity march (eager, graph, syncs)
-#   profile   one step's profile after (PROFILE_SCENES) and before (blocks): ms/step, the GPU's
+#   profile   one step's profile after (PROFILE_SCENES) and before (BEFORE_SCENES, default
+#             blocks): ms/step, the GPU's
 #             busy share, samples per ray, host syncs per step. With PROFILE_VARIANTS
 #             ("NAME=JSON ...", benchmarks.cpu_preset variants), each variant of the after tree
 #             on each scene instead (and BEFORE_TREE may be '-')
@@ -65,7 +66,9 @@ if want profile && [ -n "$PROFILE_VARIANTS" ]; then
         for v in $PROFILE_VARIANTS; do profile "$ROOT" "${v%%=*}" "$s" --variant "$v"; done
     done
 elif want profile; then
-    [ "$BEFORE" = - ] || profile "$BEFORE" before blocks
+    if [ "$BEFORE" != - ]; then
+        for s in ${BEFORE_SCENES:-blocks}; do [ -d "$DATA/$s" ] && profile "$BEFORE" before "$s"; done
+    fi
     for s in $PROFILE_SCENES; do [ -d "$DATA/$s" ] && profile "$ROOT" after "$s"; done
 fi
 evt() {  # TREE LABEL SCENE [--set ...]

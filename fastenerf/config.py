@@ -280,8 +280,7 @@ class SceneConfig:
 # Training configuration (see fastenerf/train.py).
 
 MAX_RAYS_PER_STEP = 1 << 20
-"""Pixels per step above this are refused: each is rendered twice with up to hundreds of
-samples, so 2^20 already needs tens of GiB on a GPU for the ngp backend."""
+"""Pixels per step above this are refused: 2^20 already needs tens of GiB on a GPU (ngp)."""
 
 DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 
@@ -319,8 +318,7 @@ class TrainConfig:
     with events in their window). Default: 0.1 synthetic, 0.05 real."""
     rays_per_step: int | None = field(default=None, metadata={"min": 1, "max": MAX_RAYS_PER_STEP})
     """Pixels per step, each rendered at the window's start and end. Default: by preset and
-    device (8192 on CUDA, 512 on a CPU, the CPU preset's for ngp on a CPU; 1024 for
-    eventnerf)."""
+    device (8192 on CUDA; on a CPU 512, the CPU preset's for ngp; 1024 for eventnerf)."""
     windows_per_step: int = field(default=1, metadata={"min": 1, "max": 65536})
     """Windows per step; the pixels are split evenly over them (fast preset: 16)."""
     lr: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
@@ -328,11 +326,13 @@ class TrainConfig:
     lr_final: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
     """Learning rate at the end of the budget, reached by exponential decay; unset: constant
     (fast preset: lr / 10)."""
+    lr_decay_start: float = field(default=0.0, metadata={"min": 0.0, "max": 0.99})
+    """Budget fraction spent at `lr` before the decay to lr_final starts (instant-ngp decays
+    late); 0: from the first step."""
     lr_warmup_steps: int = field(default=0, metadata={"min": 0, "max": 1_000_000_000})
     """Steps of linear learning-rate warm-up from 0."""
     adam_betas: list[float] | None = None
-    """Adam's two betas, each in [0, 1). Default: by backend (ngp 0.9 0.99, vanilla 0.9
-    0.999)."""
+    """Adam's two betas, each in [0, 1). Default: by backend (ngp 0.9 0.99, vanilla 0.9 0.999)."""
     adam_eps: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
     """Adam's eps. Default: by backend (ngp 1e-15, vanilla 1e-8)."""
     steps: int | None = field(default=None, metadata={"min": 0, "max": 1_000_000_000})

@@ -277,11 +277,13 @@ class Trainer:
     # -- one step ----------------------------------------------------------------------------
 
     def lr_at(self, step: int) -> float:
-        """Learning rate for `step`: warm-up, then constant or exponential decay to lr_final."""
+        """Learning rate for `step`: warm-up, then constant or exponential decay to lr_final
+        (held at lr until the budget fraction lr_decay_start, then decayed over the rest)."""
         c = self.cfg
         lr = c.lr
         if c.lr_final is not None and c.lr_final != c.lr:
-            lr = c.lr * (c.lr_final / c.lr) ** self.progress(step)
+            s = c.lr_decay_start
+            lr = c.lr * (c.lr_final / c.lr) ** max(0.0, (self.progress(step) - s) / (1.0 - s))
         if c.lr_warmup_steps > 0:
             lr *= min(1.0, (step + 1) / c.lr_warmup_steps)
         return lr

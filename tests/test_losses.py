@@ -150,3 +150,22 @@ def test_presets_hold_the_reference_values(scene_config):
     assert fast.win_redraw == "step" and fast.windows_per_step > 1 and fast.lr_final < fast.lr
     with pytest.raises(InputError, match="preset"):
         train_preset("slow")
+
+
+def test_lr_decay_start_holds_the_lr_then_decays_over_the_rest():
+    from types import SimpleNamespace
+
+    from fastenerf.train import Trainer
+
+    def lr_at(cfg, step):  # Trainer.lr_at on a budget of 1000 steps, no trainer built
+        return Trainer.lr_at(SimpleNamespace(cfg=cfg, progress=lambda s: s / 1000), step)
+
+    late = train_preset("fast", "ngp", steps=1000, lr_decay_start=0.5)
+    assert lr_at(late, 0) == lr_at(late, 500) == late.lr
+    ratio = late.lr_final / late.lr
+    assert lr_at(late, 750) == pytest.approx(late.lr * ratio**0.5, rel=1e-12)
+    assert lr_at(late, 1000) == pytest.approx(late.lr_final, rel=1e-12)
+    # 0 (the default) is the plain exponential decay from the first step, bit for bit
+    plain = train_preset("fast", "ngp", steps=1000)
+    assert plain.lr_decay_start == 0.0
+    assert lr_at(plain, 250) == plain.lr * ratio**0.25
