@@ -1,12 +1,10 @@
 """Configuration dataclasses: one per scene type, one for training.
 
-`SceneConfig` is what `scene.json` holds (DESIGN §6). It decides which parts of the
-pipeline are built: Bayer filtering only when `bayer` is set, cylinder clipping only when
-`cylinder` is set, the distortion path only when k1 or k2 is non-zero.
-
-Units: times in integer microseconds, lengths in world units, angles in degrees,
-colours in display space [0, 1] (the space the field renders and ground truth is stored in;
-linear intensity is `c ** 2.2`, DESIGN §9).
+`SceneConfig` is what `scene.json` holds (DESIGN §6). It decides which parts of the pipeline
+are built: Bayer filtering only when `bayer` is set, cylinder clipping only when `cylinder` is
+set, the distortion path only when k1 or k2 is non-zero. Units: times in integer µs, lengths
+in world units, angles in degrees, colours in display space [0, 1] (what the field renders and
+ground truth is stored in; linear intensity is `c ** 2.2`, DESIGN §9).
 """
 
 from __future__ import annotations
@@ -72,11 +70,8 @@ class TrajectoryConfig:
 
 @dataclass
 class CylinderConfig:
-    """Density clip (supplement A.2): zero outside x² + z² ≤ radius², y_min ≤ y ≤ y_max.
-
-    World units; y is the turntable axis. The one cylinder type of both field backends, the
-    occupancy grid and the mesh extractor.
-    """
+    """Density clip (supplement A.2): zero outside x² + z² ≤ radius², y_min ≤ y ≤ y_max (world
+    units, y the turntable axis); of both field backends, the occupancy grid and the mesher."""
 
     radius: float = 0.25
     """Radius about the world y axis, world units."""
@@ -404,6 +399,9 @@ class TrainConfig:
     row-adam: lazy Adam, each row's moments and step only when a batch sees that row."""
     refine_gauge: Literal["mean", "first", "none"] = "mean"
     """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift)."""
+    refine_shared: bool = False
+    """One correction shared by every pose, c2w_i · R (a camera mis-mounted on its turntable)
+    instead of one per pose; needs refine_poses; no gauge fix (refine_gauge is ignored)."""
     refine_decay: float = field(default=30.0, metadata={"min": 0.0, "max": 1e4})
     """Decoupled decay towards the given poses (a row the batch sees shrinks by pose lr x this):
     what the events hardly constrain (a slow drift along the trajectory) goes back."""
@@ -468,6 +466,8 @@ class TrainConfig:
             _check(v in allowed, where, key, f"must be one of {allowed}, got {v!r}")
         v = self.refine_start
         _check(v < 1, where, "refine_start", f"must be below 1 (poses never learnt), got {v}")
+        ok = self.refine_poses or not self.refine_shared
+        _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:

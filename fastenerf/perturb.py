@@ -5,6 +5,9 @@
   each of its samples turned; a turntable is first sampled on the training pose grid
   (`pose_grid_times`, the grid `WindowSampler` draws windows on) and becomes a timed
   trajectory of those poses. The angles reported are measured from the rotations.
+- mount error (`perturb_mount`): every training pose turned by one shared rotation M (a fixed
+  angle about ONE random axis) in the camera's own frame, c2w · M: a camera mis-mounted on its
+  turntable. With the pose error too, the mount turn comes first: c2w · M · Δ_i.
 - noise events (`add_noise_events`): uniformly random events (x, y over the sensor, t over the
   stream's time range, polarity ±1 with equal odds), F times the clean count, merged in time
   order.
@@ -30,6 +33,7 @@ from .errors import InputError
 # Salts of the per-perturbation random streams (one user seed, independent draws).
 _POSE_STREAM = 0x9E05E
 _NOISE_STREAM = 0x7015E
+_MOUNT_STREAM = 0x3047E
 
 # Two samples of a loop at t_start and t_start + P whose poses agree this closely (matrix
 # entries, world units) are one view: they get one perturbation.
@@ -86,18 +90,43 @@ def perturb_poses(
     samples, the largest camera-centre shift (world units), the number of poses and the seed.
     """
     PerturbConfig(pose_error_deg=angle_deg, seed=seed).validate("perturb_poses")
-    traj = rig.trajectory
-    if isinstance(traj, TimedPoses):
-        t, c2w = timed_samples(traj)
-        sampled = "timed samples"
-    else:
-        if grid_t is None:
-            raise InputError("perturb_poses: a turntable rig needs the training pose grid grid_t")
-        t = np.asarray(grid_t, dtype=np.int64)
-        c2w = traj(t)
-        sampled = "turntable sampled on the training pose grid"
+    t, c2w, sampled = _samples(rig, grid_t, "perturb_poses")
     rng = np.random.default_rng([_POSE_STREAM, int(seed)])
     delta = _axis_angle_matrices(random_axes(rng, len(t)), np.deg2rad(float(angle_deg)))
+    return _turned(rig, t, c2w, delta, grid_t, sampled, angle_deg, seed)
+
+
+def perturb_mount(
+    rig: Rig, angle_deg: float, seed: int = 0, grid_t: np.ndarray | None = None
+) -> tuple[Rig, dict]:
+    """Turn every training pose by one shared rotation M in the camera's own frame,
+    c2w_i · M (about the centre): `angle_deg` about ONE random axis (uniform on the sphere),
+    the camera mis-mounted. Arguments and report as `perturb_poses` (the report adds "axis",
+    the camera-frame axis of M); M being shared, slerp between samples keeps it exactly."""
+    PerturbConfig(mount_error_deg=angle_deg, seed=seed).validate("perturb_mount")
+    t, c2w, sampled = _samples(rig, grid_t, "perturb_mount")
+    axis = random_axes(np.random.default_rng([_MOUNT_STREAM, int(seed)]), 1)
+    delta = np.repeat(_axis_angle_matrices(axis, np.deg2rad(float(angle_deg))), len(t), 0)
+    out, report = _turned(rig, t, c2w, delta, grid_t, sampled, angle_deg, seed)
+    report["axis"] = axis[0].tolist()
+    return out, report
+
+
+def _samples(rig: Rig, grid_t: np.ndarray | None, where: str):
+    """The poses to turn: t (M,) int64 µs, c2w (M, 4, 4) float64 and how they were sampled."""
+    traj = rig.trajectory
+    if isinstance(traj, TimedPoses):
+        return *timed_samples(traj), "timed samples"
+    if grid_t is None:
+        raise InputError(f"{where}: a turntable rig needs the training pose grid grid_t")
+    t = np.asarray(grid_t, dtype=np.int64)
+    return t, traj(t), "turntable sampled on the training pose grid"
+
+
+def _turned(rig, t, c2w, delta, grid_t, sampled, angle_deg, seed) -> tuple[Rig, dict]:
+    """The rig of the poses c2w (at t) turned by delta (M, 3, 3) in their own frames, and
+    the report of what the rigs give (not what was asked)."""
+    traj = rig.trajectory
     twin = _loop_twin(rig, t, c2w)
     if twin:
         delta[-1] = delta[0]  # the loop's end is its start: one view, one perturbation
@@ -216,15 +245,18 @@ def perturb_training_data(
 
     rig: the training rig to perturb (default `scene.rig()`). Zero levels return `rig` and
     `scene.events` themselves (the identity). report: {"config": cfg as a dict, "pose": the
-    `perturb_poses` report or None, "noise": the `add_noise_events` report or None}.
+    `perturb_poses` report or None, "mount": the `perturb_mount` report or None, "noise": the
+    `add_noise_events` report or None}. The mount turn comes before the per-pose one.
     Test views (`scene.test_c2w`) are not read or changed.
     """
     cfg.validate()
     rig = scene.rig() if rig is None else rig
     events = scene.events
-    report: dict = {"config": cfg.to_dict(), "pose": None, "noise": None}
+    report: dict = {"config": cfg.to_dict(), "pose": None, "mount": None, "noise": None}
+    grid = pose_grid_times(scene.config)
+    if cfg.mount_error_deg > 0:  # first: c2w · M, then each pose's own turn, c2w · M · Δ_i
+        rig, report["mount"] = perturb_mount(rig, cfg.mount_error_deg, cfg.seed, grid)
     if cfg.pose_error_deg > 0:
-        grid = pose_grid_times(scene.config)
         rig, report["pose"] = perturb_poses(rig, cfg.pose_error_deg, cfg.seed, grid)
     if cfg.noise_fraction > 0:
         events, report["noise"] = add_noise_events(events, cfg.noise_fraction, cfg.seed)

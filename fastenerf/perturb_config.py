@@ -35,24 +35,27 @@ class PerturbConfig:
     """Seed of the perturbations (pose axes, noise events); independent of the training seed,
     so runs at one level with other training seeds see the same perturbed data."""
 
+    mount_error_deg: float = 0.0
+    """Degrees: every training pose's rotation is turned by exactly this angle about ONE shared
+    random axis in the camera's own frame (c2w · M, a camera mis-mounted), about the camera
+    centre; before the per-pose turn when both are set. In [0, 180)."""
+
     @property
     def active(self) -> bool:
         """True when anything is perturbed (False: the clean scene, the identity)."""
-        return self.pose_error_deg != 0.0 or self.noise_fraction != 0.0
+        levels = (self.pose_error_deg, self.mount_error_deg, self.noise_fraction)
+        return any(v != 0.0 for v in levels)
 
     def validate(self, where: str = "perturb") -> PerturbConfig:
         import numbers  # here, not at the top: this section is appended to a shared file
 
-        for key in ("pose_error_deg", "noise_fraction"):
+        for key in ("pose_error_deg", "mount_error_deg", "noise_fraction"):
             v = getattr(self, key)
             ok = isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
             _check(ok, where, key, f"must be a finite number, got {v!r}")
-        _check(
-            0.0 <= self.pose_error_deg < 180.0,
-            where,
-            "pose_error_deg",
-            f"must be in [0, 180) degrees, got {self.pose_error_deg}",
-        )
+        for key in ("pose_error_deg", "mount_error_deg"):
+            v = getattr(self, key)
+            _check(0.0 <= v < 180.0, where, key, f"must be in [0, 180) degrees, got {v}")
         _check(
             0.0 <= self.noise_fraction <= 10.0,
             where,

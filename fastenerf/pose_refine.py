@@ -16,6 +16,13 @@ world-frame corrections zero-mean, which removes exactly that motion; "first" ke
 first row fixed instead (the scene keeps that camera's frame, errors included); "none"
 leaves the scene free to drift. Rows no window uses (a loop's last row, the twin of its
 first) keep a zero correction and are left out of the gauge.
+
+`shared=True` learns ONE camera-frame row (1, 6) for every pose, a camera mis-mounted on its
+rig: R'_i = R_i · Exp(ω) = Exp(R_i ω) · R_i, the same maths with every row's δ tied to the
+one parameter (broadcast to the G rows; its gradient sums theirs). Every ray's parameter row
+is 0 (`rays_and_rows` reports one row seen); the grid rows still give each ray its pose. It
+has no gauge: the same turn in every camera's own frame is no rigid motion of the world (a
+mean gauge would remove all of it), so `shared` needs gauge "none".
 """
 
 from __future__ import annotations
@@ -49,7 +56,9 @@ class PoseRefiner(nn.Module):
     exact poses (a study's unperturbed rig), only for the error stats; translation: False
     learns rotations only (the centres stay); fused: `rays` runs the Warp kernels
     (`kernels.pose_rays`) where Warp loads and delta is float32, else the torch reference.
-    Parameter `delta`: (G, 6) camera-frame [ω (rad), u (world units)] before the gauge fix.
+    shared: one row for every pose (module docstring; needs gauge "none").
+    Parameter `delta`: (G, 6) camera-frame [ω (rad), u (world units)] before the gauge fix;
+    (1, 6) when shared.
     """
 
     def __init__(
@@ -60,27 +69,33 @@ class PoseRefiner(nn.Module):
         true_c2w: torch.Tensor | None = None,
         translation: bool = True,
         fused: bool = True,
+        shared: bool = False,
     ):
         super().__init__()
-        self.fused = fused
+        self.fused, self.shared = fused, shared
         if gauge not in GAUGES:
             raise ValueError(f"PoseRefiner: gauge must be one of {GAUGES}, got {gauge!r}")
+        if shared and gauge != "none":
+            raise ValueError(f"PoseRefiner: a shared correction has no gauge, got {gauge!r}")
         if not bool(used.any()):
             raise ValueError("PoseRefiner: no grid row is used")
         self.gauge = gauge
         self.register_buffer("base", grid_c2w.detach().float().clone())
         mask = used.to(self.base.device, torch.float32)
+        if shared:  # every row is the one camera: its loop twin too
+            mask = torch.ones_like(mask)
         if gauge == "first":
             mask[int(used.nonzero()[0, 0])] = 0.0
         self.register_buffer("used", used.to(self.base.device, torch.bool))
         cols = torch.tensor([1.0] * 3 + [float(translation)] * 3, device=mask.device)
         self.register_buffer("mask", mask[:, None] * cols)
         self.register_buffer("true_c2w", None if true_c2w is None else true_c2w.float().clone())
-        self.delta = nn.Parameter(torch.zeros(len(grid_c2w), 6, device=self.base.device))
+        rows = 1 if shared else len(grid_c2w)
+        self.delta = nn.Parameter(torch.zeros(rows, 6, device=self.base.device))
 
     def corrections(self) -> torch.Tensor:
         """The gauge-fixed world-frame corrections δ = [w, v], (G, 6): zero on unused rows (and
-        on a fixed first row)."""
+        on a fixed first row); shared: the one row in every camera's frame."""
         R = self.base[:, :3, :3]
         d = torch.einsum("gij,gkj->gki", R, (self.delta * self.mask).view(-1, 2, 3))
         d = d.reshape(-1, 6)
@@ -131,16 +146,19 @@ class PoseRefiner(nn.Module):
         *,
         fused: bool | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """`rays`, and the (G,) bool rows pose_idx holds (what the lazy row Adam steps)."""
+        """`rays`, and the bool rows of `delta` pose_idx holds (what the lazy row Adam steps):
+        (G,), or (1,) when shared."""
         kernels = _pose_rays() if (self.fused if fused is None else fused) else None
         if kernels is not None and self.delta.dtype == torch.float32:
             if rays_d is None:
                 k = pose_idx.shape[0] // max(dirs.shape[0], 1)
                 rays_d = generate_rays(dirs.float().repeat(k, 1), self.base[pose_idx])[1]
             centre = self.gauge == "mean"
-            return kernels.pose_rays(
-                self.delta, self.base, self.mask, dirs, pose_idx, rays_d, centre
+            delta = self.delta.expand(len(self.base), 6)  # shared: one row, every pose's
+            o, d, seen = kernels.pose_rays(
+                delta, self.base, self.mask, dirs, pose_idx, rays_d, centre
             )
+            return o, d, self._param_rows(seen)
         d = self.corrections()
         # index_select: its backward adds into the few rows a batch sees by atomics; advanced
         # indexing's (a sorted index_put) walks each row's thousands of duplicates serially
@@ -148,9 +166,13 @@ class PoseRefiner(nn.Module):
         o = (self.base[:, :3, 3] + d[:, 3:]).index_select(0, pose_idx)
         k = pose_idx.shape[0] // dirs.shape[0]
         rd = torch.einsum("nij,nj->ni", R, dirs.to(R.dtype).repeat(k, 1))
-        seen = torch.zeros(len(self.delta), dtype=torch.bool, device=o.device)
+        seen = torch.zeros(len(self.base), dtype=torch.bool, device=o.device)
         seen[pose_idx] = True
-        return o.contiguous(), nn.functional.normalize(rd, dim=-1), seen
+        return o.contiguous(), nn.functional.normalize(rd, dim=-1), self._param_rows(seen)
+
+    def _param_rows(self, seen: torch.Tensor) -> torch.Tensor:
+        """The grid rows seen (G,) as rows of `delta`: shared, (1,) whether any was."""
+        return seen.any(0, keepdim=True) if self.shared else seen
 
     @torch.no_grad()
     def stats(self) -> dict[str, float]:

@@ -7,7 +7,8 @@ the rays and targets of a batch (`apply`), steps it after the field's optimiser 
 and logs its `stats`; `report` goes into RUN/config.json. Guards: the optimiser step is
 skipped when a gradient is not finite (a NaN would stay in Adam's moments for good), the
 threshold parameters are projected into their bounds after each step, and pose corrections
-are gauge-fixed (`pose_refine`).
+are gauge-fixed (`pose_refine`) unless one is shared by every pose (`refine_shared`: a camera
+mis-mounted; no gauge, refine_gauge is ignored).
 """
 
 from __future__ import annotations
@@ -76,9 +77,10 @@ class SelfCalibration:
             self.poses = PoseRefiner(
                 sampler.grid_c2w,
                 used_rows(sampler),
-                cfg.refine_gauge,
+                "none" if cfg.refine_shared else cfg.refine_gauge,  # a shared row has no gauge
                 true_c2w,
                 translation=cfg.refine_translation,
+                shared=cfg.refine_shared,
             )
             group = {"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"}
             if cfg.refine_optimizer == "row-adam":
@@ -245,7 +247,8 @@ class SelfCalibration:
             }
         if self.poses is not None:
             out["poses"] = {
-                "rows": int(self.poses.used.sum()),
+                "rows": 1 if self.poses.shared else int(self.poses.used.sum()),
+                "shared": self.poses.shared,
                 "gauge": self.poses.gauge,
                 "corrections": "world-frame [rotation vector (rad), shift (world units)]",
             }

@@ -225,7 +225,8 @@ class Trainer:
         if not SelfCalibration.wanted(self.cfg):
             return None
         sc, true_c2w = self.scene.config, None
-        if self.perturbation and self.perturbation.get("pose"):  # a study knows the truth
+        p = self.perturbation or {}
+        if p.get("pose") or p.get("mount"):  # a study knows the truth
             grid_t = self.windows.grid_times(np.arange(self.windows.n_views + 1))
             true_c2w = torch.as_tensor(self.scene.rig().pose(grid_t), device=self.device)
         thresholds = (sc.pos_threshold, sc.neg_threshold)

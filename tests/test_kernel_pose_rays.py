@@ -229,3 +229,67 @@ def test_row_adam_decay_rejects_a_negative_decay():
     p.grad = torch.ones(2, 6)
     with pytest.raises(ValueError, match="decay"):
         RowAdam([p], lr=1e-2).step(torch.tensor([True, False]), decay=-1.0)
+
+
+@pytest.mark.parametrize("layout", ["runs", "shuffled"])
+@pytest.mark.parametrize("device", DEVICES)
+def test_shared_row_rays_and_gradient(layout, device):
+    """refine_shared: one (1, 6) row for every pose; a ray's direction is c2w_i · Exp(ω) d and
+    its origin the centre (rotations only); the fused kernels (the row broadcast to the grid,
+    its gradient summed back) match the float64 torch path, whose gradient matches finite
+    differences; rays of several poses all reach the one row."""
+    gen = torch.Generator().manual_seed(3)
+    pr = PoseRefiner(grid(gen), USED, "none", translation=False, shared=True)
+    assert pr.delta.shape == (1, 6)
+    with pytest.raises(ValueError, match="no gauge"):
+        PoseRefiner(pr.base, USED, "mean", shared=True)
+    with torch.no_grad():
+        pr.delta.copy_(torch.tensor([[0.02, -0.03, 0.01, 0.5, 0.5, 0.5]]))
+    idx = sampler_rows(gen, layout)
+    assert len(idx.unique()) > 2
+    dirs = torch.cat([torch.randn(B, 2, generator=gen) * 0.6, torch.ones(B, 1)], 1)
+    base_d = generate_rays(dirs.repeat(2, 1), pr.base[idx])[1]
+    g_o, g_d = torch.randn(2 * B, 3, generator=gen), torch.randn(2 * B, 3, generator=gen)
+    args = [t.to(device) for t in (dirs, idx, base_d, g_o, g_d)]
+    o, d, seen, grad = (t.cpu() for t in rays_and_grad(pr.to(device), *args, fused=True))
+    pr.cpu()
+    ref = PoseRefiner(pr.base, USED, "none", translation=False, shared=True).double()
+    with torch.no_grad():
+        ref.delta.copy_(pr.delta.double())
+    o64, d64, seen64, grad64 = rays_and_grad(ref, dirs, idx, None, g_o, g_d, fused=False)
+    # the maths of a mis-mounted camera: every pose's own rotation, then the one turn
+    R = pr.base[:, :3, :3].double() @ so3_exp(pr.delta[0, :3].double())
+    want = torch.nn.functional.normalize(
+        torch.einsum("nij,nj->ni", R[idx], dirs.double().repeat(2, 1)), dim=-1
+    )
+    torch.testing.assert_close(d64, want, atol=1e-7, rtol=0)  # a float32 base: R ω rotated
+    torch.testing.assert_close(o64, pr.base[idx, :3, 3].double(), atol=0, rtol=0)
+    torch.testing.assert_close(ref.c2w()[:, :3, :3].double(), R.float().double(), atol=1e-6, rtol=0)
+    torch.testing.assert_close(o.double(), o64, atol=1e-6, rtol=0)
+    torch.testing.assert_close(d.double(), d64, atol=5e-7, rtol=0)
+    assert seen.tolist() == seen64.tolist() == [True]
+    assert grad.shape == (1, 6) and (grad[0, 3:] == 0).all() and grad[0, :3].abs().min() > 0
+    torch.testing.assert_close(grad.double(), grad64, atol=1e-6 * grad64.abs().max(), rtol=1e-5)
+
+    def loss(delta):
+        with torch.no_grad():
+            ref.delta.copy_(delta)
+            o, d = ref.rays(dirs.double(), idx, fused=False)
+            return float((o * g_o.double()).sum() + (d * g_d.double()).sum())
+
+    h, fd = 1e-6, torch.zeros(3, dtype=torch.float64)
+    for j in range(3):
+        e = torch.zeros(1, 6, dtype=torch.float64)
+        e[0, j] = h
+        fd[j] = (loss(pr.delta.double() + e) - loss(pr.delta.double() - e)) / (2 * h)
+    torch.testing.assert_close(grad64[0, :3], fd, atol=1e-6 * fd.abs().max(), rtol=1e-6)
+    with torch.no_grad():
+        ref.delta.copy_(pr.delta.double())
+    # each pose's rays alone give the row a gradient: the shared one is their sum
+    parts = torch.zeros(1, 6, dtype=torch.float64)
+    for row in idx.unique():
+        keep = (idx == row)[:, None].double()
+        _, _, _, gr = rays_and_grad(ref, dirs, idx, None, g_o * keep, g_d * keep, fused=False)
+        assert gr[0, :3].abs().max() > 0
+        parts += gr
+    torch.testing.assert_close(parts, grad64, atol=1e-9 * grad64.abs().max(), rtol=1e-9)

@@ -241,13 +241,16 @@ def small_scene(tmp_path, random_stream, scene_config, timed=False, loop=True) -
 
 def test_perturb_config_validation():
     assert not PerturbConfig().validate().active
-    assert PerturbConfig(noise_fraction=0.05).active
+    assert PerturbConfig(noise_fraction=0.05).active and PerturbConfig(mount_error_deg=1).active
     c = PerturbConfig.from_dict({"pose_error_deg": 0.5, "noise_fraction": 0.15, "seed": 3})
     assert PerturbConfig.from_dict(json.loads(json.dumps(c.to_dict()))) == c
     PerturbConfig(np.float32(0.5), np.float64(0.1), np.int64(3)).validate()  # levels from arrays
     bad = [
         ({"pose_error_deg": -0.1}, "pose_error_deg"),
         ({"pose_error_deg": 180}, "pose_error_deg"),
+        ({"mount_error_deg": 180}, "mount_error_deg"),
+        ({"mount_error_deg": -1.0}, "mount_error_deg"),
+        ({"mount_error_deg": "2"}, "mount_error_deg"),
         ({"noise_fraction": 10.5}, "noise_fraction"),
         ({"noise_fraction": -0.01}, "noise_fraction"),
         ({"seed": -1}, "seed"),
@@ -291,6 +294,34 @@ def test_apply_to_a_scene(tmp_path, random_stream, scene_config, timed):
     alone = perturb_training_data(scene, PerturbConfig(pose_error_deg=1.0, seed=2))[0]
     grid = pose_grid_times(scene.config)
     np.testing.assert_array_equal(alone.pose(grid), rig.pose(grid))
+
+
+@pytest.mark.parametrize("timed", [False, True])
+def test_mount_error_is_one_camera_frame_turn(tmp_path, random_stream, scene_config, timed):
+    """Every training pose turned by exactly mount_error_deg about ONE camera-frame axis,
+    c2w · M, centres kept; with the pose error too, c2w · M · Δ_i (Δ_i as without the mount)."""
+    scene = small_scene(tmp_path, random_stream, scene_config, timed=timed)
+    grid, test_c2w = pose_grid_times(scene.config), scene.test_c2w.copy()
+    exact = scene.rig().pose(grid)
+    rig, _, rep = perturb_training_data(scene, PerturbConfig(mount_error_deg=2.0, seed=3))
+    bad = rig.pose(grid)
+    rel = np.einsum("nji,njk->nik", exact[:, :3, :3], bad[:, :3, :3])  # R_exactᵀ R'
+    np.testing.assert_allclose(rel, np.broadcast_to(rel[0], rel.shape), atol=1e-12)
+    ang = rotation_angles_deg(exact[:, :3, :3], bad[:, :3, :3])
+    np.testing.assert_allclose(ang, 2.0, rtol=1e-9)
+    axis = Rotation.from_matrix(rel[0]).as_rotvec()
+    np.testing.assert_allclose(axis / np.linalg.norm(axis), rep["mount"]["axis"], atol=1e-9)
+    np.testing.assert_allclose(bad[:, :3, 3], exact[:, :3, 3], atol=1e-12)
+    assert rep["pose"] is None and abs(rep["mount"]["grid"]["measured_max_deg"] - 2.0) < 1e-9
+    other = perturb_training_data(scene, PerturbConfig(mount_error_deg=2.0, seed=4))[0]
+    assert not np.allclose(other.pose(grid), bad)  # the axis comes from the seed
+    both = perturb_training_data(scene, PerturbConfig(0.5, seed=3, mount_error_deg=2.0))[0]
+    alone = perturb_training_data(scene, PerturbConfig(0.5, seed=3))[0]
+    ts = alone.trajectory.t  # the samples turned (between them slerp blends two Δ)
+    ex = scene.rig().pose(ts)[:, :3, :3]
+    delta = np.einsum("nji,njk->nik", ex, alone.pose(ts)[:, :3, :3])
+    np.testing.assert_allclose(both.pose(ts)[:, :3, :3], ex @ rel[0] @ delta, atol=1e-12)
+    np.testing.assert_array_equal(scene.test_c2w, test_c2w)  # test views stay exact
 
 
 # ------------------------------------------------------------------------------ the command

@@ -261,3 +261,30 @@ def test_decay_without_a_row_adam_step_still_happens():
     rate = pose_lr(cal.cfg, 0.5) * 40.0
     want = torch.where(cal._seen[:, None], start * (1 - rate), start)
     torch.testing.assert_close(cal.poses.delta.detach(), want, rtol=1e-6, atol=0)
+
+
+@pytest.mark.slow
+def test_shared_row_recovers_a_mount_error(ball):  # noqa: F811
+    """A camera mis-mounted by 2° (one camera-frame turn of every pose): refine_shared learns
+    it as one row (no gauge, whatever refine_gauge says) and every pose ends well below 2°;
+    per-pose rows on the same run leave some poses far off."""
+    from fastenerf.perturb import perturb_mount
+
+    cfg, rig, events = ball
+    grid_t = WindowSampler(cfg.n_views, 0, cfg.t_end_us, 1, 4).grid_times(np.arange(41))
+    bad_rig, report = perturb_mount(rig, 2.0, seed=5, grid_t=grid_t)
+    true_c2w = torch.as_tensor(rig.pose(grid_t))
+    assert abs(report["measured_min_deg"] - 2.0) < 1e-9 and report["grid"]["poses"] == 41
+    knobs = dict(refine_poses=True, refine_lr=5e-3, refine_lr_final=5e-4, refine_start=0.0)
+    knobs.update(refine_warmup=0.0, refine_decay=0.0)
+    tc = TrainConfig(refine_shared=True, refine_gauge="mean", **knobs)
+    cal, _ = calibration_run(cfg, tc, events, bad_rig, 60, true_c2w)
+    assert cal.poses.delta.shape == (1, 6) and cal.poses.gauge == "none"
+    assert cal.report()["poses"]["shared"] and cal.report()["poses"]["rows"] == 1
+    st = cal.stats()
+    assert st["pose_error_max_deg"] < 0.5, st  # from 2° at every pose
+    assert abs(st["pose_correction_deg"] - st["pose_correction_max_deg"]) < 1e-5  # one turn
+    per_pose, _ = calibration_run(
+        cfg, TrainConfig(refine_gauge="none", **knobs), events, bad_rig, 60, true_c2w
+    )
+    assert per_pose.stats()["pose_error_max_deg"] > 2 * st["pose_error_max_deg"], st

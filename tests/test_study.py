@@ -150,7 +150,8 @@ def test_ablation_study_trains_each_variant_with_its_knobs(tiny_scene, tmp_path)
         got = tuple(train[k] for k in ("win_min", "win_max", "neg_ratio", "distortion_weight"))
         assert got == pytest.approx(want[r["level"]]), r["level"]
         assert r["knobs"]["win_min"] == got[0] and r["knobs"]["neg_ratio"] == got[2]
-        assert train["perturb"] == {"pose_error_deg": 0.0, "noise_fraction": 0.0, "seed": 0}
+        clean = {"pose_error_deg": 0.0, "noise_fraction": 0.0, "seed": 0, "mount_error_deg": 0.0}
+        assert train["perturb"] == clean
     assert "| short | 1..1 |" in md and "1 % of 100" in md
 
 

@@ -42,7 +42,7 @@ def test_help_lists_every_training_knob_with_its_docstring(capsys):
         assert flag in text  # loss and schedule
     assert "--rays-per-step N, --rays N" in text
     assert "TOTAL" in text  # --resume --steps N: the total budget, said in the help
-    for flag in ("--pose-error-deg", "--noise-fraction", "--perturb-seed"):
+    for flag in ("--pose-error-deg", "--mount-error-deg", "--noise-fraction", "--perturb-seed"):
         assert flag in text  # the studies' perturbations
 
 
@@ -60,6 +60,7 @@ def test_help_lists_every_training_knob_with_its_docstring(capsys):
         (["--rays", "100000000"], "'rays_per_step' must be in [1, 1048576], got 100000000"),
         (["--win-min", "5", "--win-max", "2"], "'win_max' must be >= win_min (5), got 2"),
         (["--neg-ratio", "1.5"], "'neg_ratio' must be in [0, 1], got 1.5"),
+        (["--refine-shared"], "'refine_shared' needs refine_poses"),
         (["--lr-decay-start", "1"], "'lr_decay_start' must be in [0, 0.99], got 1"),
         (["--options", '{"hidden": -1}'], "'network.hidden' must be in [1, 1024], got -1"),
         (

@@ -92,7 +92,7 @@ def _add_perturb_flags(p: argparse.ArgumentParser) -> None:
     from ..schema import add_flags, field_docs
 
     group = p.add_argument_group("perturbations of the training data (robustness studies)")
-    add_flags(group, PerturbConfig, ["pose_error_deg", "noise_fraction"])
+    add_flags(group, PerturbConfig, ["pose_error_deg", "mount_error_deg", "noise_fraction"])
     group.add_argument(
         "--perturb-seed",
         type=int,
@@ -106,6 +106,7 @@ def _perturb_flags(args: argparse.Namespace) -> dict:
     """{PerturbConfig field: value} of the perturbation flags given."""
     given = {
         "pose_error_deg": getattr(args, "pose_error_deg", None),
+        "mount_error_deg": getattr(args, "mount_error_deg", None),
         "noise_fraction": getattr(args, "noise_fraction", None),
         "seed": getattr(args, "perturb_seed", None),
     }
