@@ -53,7 +53,8 @@ def _march(case, gen, R=80):
     cyl = (0.6, -0.5, 0.4) if kind == "cylinder" else None
     grid = None if kind == "none" else _grid(gen, cylinder=cyl)
     o, d = _rays(R, gen)
-    o[5] = torch.tensor([5.0, 5.0, 5.0])  # misses the box: no samples
+    o[5] = torch.tensor([5.0, 5.0, 5.0])  # outside the box, looking away: no samples
+    d[5] = torch.nn.functional.normalize(o[5], dim=0)
     jitter = torch.rand(R, generator=gen) if jit else None
     args = (o, d, BOX, grid, 0.02, 6.0, cone, dt_min, dt_max, cap, jitter, seg)
     return args, march_rays(*args)
