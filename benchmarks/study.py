@@ -1,23 +1,24 @@
 """The robustness studies of supplement H, I, J: how reconstruction degrades with camera-pose
-error, with noise events, and without the method's window / sampling / loss choices.
+error, with noise events, and without the method's window / sampling / loss choices; and, beside
+them, with a camera-mount error (one camera-frame turn shared by every training pose).
 
-    fastenerf bench study pose-error|noise|ablation SCENE [--budget-s 60 | --steps N] \
-        [--levels ...] [--out DIR] [--resume] [--seed 0] [--device auto] \
-        [--eval-views 10] [--eval-scale 1] [--max-wall-s S] [--quiet]
+    fastenerf bench study pose-error|mount-error|noise|ablation SCENE \
+        [--budget-s 60 | --steps N] [--levels ...] [--out DIR] [--resume] [--seed 0] \
+        [--device auto] [--eval-views 10] [--eval-scale 1] [--max-wall-s S] [--quiet]
 
 Each level trains the fast backend (ngp, preset `fast`) once on SCENE with the same budget
 (training seconds, or `--steps`), in its own run folder OUT/runs/LEVEL, through
 `benchmarks.curve.train_curve` (the one training loop; the clock excludes evaluation). Every
-run is evaluated on the same clean test views (the pose error and the noise touch only the
+run is evaluated on the same clean test views (the pose errors and the noise touch only the
 training rig and events) by the one evaluation path (`fastenerf.evaluate`): at budget/4,
 budget/2 and the budget with a time budget, at the last step with `--steps`. One process
 trains the levels in order; several studies may run side by side on one GPU.
 
-Outputs in OUT (STUDY = pose-error, noise or ablation):
+Outputs in OUT (STUDY = pose-error, mount-error, noise or ablation):
   STUDY.json       every level: the measured perturbation (from its run's config.json), the
                    knobs it trained with, PSNR / SSIM (colour-corrected), steps, training
                    seconds, its evaluation points, machine and versions; the supplement's
-                   numbers and, for pose-error and noise, where the curve breaks (the
+                   numbers and, for the numeric studies, where the curve breaks (the
                    adjacent levels with the largest PSNR drop, the first level more than 3 dB
                    below level 0's)
   STUDY.png        PSNR and SSIM against the level (log axis with 0 at a marked place)
@@ -44,6 +45,7 @@ from benchmarks.curve import load_scene_dir, make_config, read_curve, train_curv
 from benchmarks.session import session_info
 from benchmarks.study_levels import (
     ABLATION_HELP,
+    POSE_STUDIES,
     STUDIES,
     level_overrides,
     level_slug,
@@ -293,6 +295,9 @@ def _fmt(x) -> str:
 def _study_help(name: str) -> str:
     return {
         "pose-error": "camera-pose error: every training pose turned by X° about a random axis",
+        "mount-error": "camera-mount error: every training pose turned by X° about ONE random "
+        "axis in the camera's own frame (a camera mis-mounted on its turntable; learn it back "
+        "with --set refine_poses=true refine_shared=true)",
         "noise": "noise events: uniform random events, X % of the clean count, added to the "
         "training stream",
         "ablation": "the method's choices switched off one at a time (training knobs)",
@@ -303,11 +308,12 @@ def _levels_help(name: str) -> str:
     spec = STUDIES[name]
     if name == "ablation":
         return "Variants: " + "; ".join(f"{k}: {v}" for k, v in ABLATION_HELP.items())
-    unit = "degrees" if name == "pose-error" else "percent of the clean event count"
+    unit = "degrees" if name in POSE_STUDIES else "percent of the clean event count"
     sup = ", ".join(f"{_fmt(k)} → {v:.2f} dB" for k, v in spec.supplement.items())
+    sup = f"The supplement on Drums: {sup}." if sup else f"Supplement: {spec.supplement_note}."
     return (
         f"Levels in {unit}, default {' '.join(_fmt(x) for x in spec.levels)}. "
-        f"Test views stay exact. The supplement on Drums: {sup}."
+        f"Test views stay exact. {sup}"
     )
 
 
@@ -326,7 +332,7 @@ def _outputs_epilog(name: str) -> str:
         f"outputs in --out: {name}.json (every level: measured perturbation, knobs, "
         f"PSNR/SSIM, steps, seconds, machine), {name}.png (PSNR and SSIM against the level), "
         f"{name}_grid.png (ground truth + one test view per level), {name}.md (the table beside "
-        "the supplement's numbers; for pose-error and noise: where the curve breaks); "
+        "the supplement's numbers; for the numeric studies: where the curve breaks); "
         "runs/LEVEL/ holds each level's run folder."
     )
 

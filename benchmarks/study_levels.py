@@ -1,8 +1,12 @@
-"""The three robustness studies of the supplement (H, I, J): their levels, what each level
-changes in the training configuration, and the supplement's own numbers to compare with.
+"""The robustness studies of the supplement (H, I, J) and one beside them: their levels, what
+each level changes in the training configuration, and the supplement's own numbers to compare
+with.
 
 pose-error  every training pose's rotation turned by X° about its own random axis (test
             poses exact); levels in degrees
+mount-error every training pose turned by X° about ONE random axis in the camera's own frame
+            (a camera mis-mounted on its turntable; learnt back by refine_poses +
+            refine_shared); levels in degrees; no supplement numbers
 noise       uniformly random events added to the training stream, X % of the clean count;
             levels in percent
 ablation    the method's choices switched off one at a time (training knobs): constant short
@@ -41,6 +45,10 @@ class Study:
     axis: str  # plot axis label
     supplement: dict = field(default_factory=dict)
     supplement_note: str = ""
+    perturb: str = ""  # the PerturbConfig field a level sets ("" : training knobs)
+    divisor: float = 1.0  # that field's value is level / divisor (percent -> fraction: 100)
+    report: str = ""  # its key in RUN/config.json["perturbation"] (what the trainer measured)
+    slug: str = ""  # the run folders' prefix: "pose" -> runs/pose-1deg
 
 
 STUDIES: dict[str, Study] = {
@@ -52,6 +60,24 @@ STUDIES: dict[str, Study] = {
         "pose error (degrees, every training pose)",
         {0.0: 27.43, 0.01: 27.26, 0.1: 26.18, 1.0: 18.11, 2.0: 17.49},
         "supplement I, Fig. 11: Drums, PSNR (dB)",
+        "pose_error_deg",
+        1.0,
+        "pose",
+        "pose",
+    ),
+    "mount-error": Study(
+        "mount-error",
+        (0.0, 0.5, 1.0, 2.0, 5.0),
+        True,
+        "deg",
+        "mount error (degrees, one camera-frame turn shared by every training pose)",
+        {},
+        "none — the supplement has no mount-error study (ours, beside its pose study; "
+        "docs/self-calibration.md)",
+        "mount_error_deg",
+        1.0,
+        "mount",
+        "mount",
     ),
     "noise": Study(
         "noise",
@@ -61,6 +87,10 @@ STUDIES: dict[str, Study] = {
         "noise events (% of the clean event count)",
         {0.0: 27.43, 1.0: 27.35, 5.0: 27.36, 15.0: 27.31},
         "supplement J, Fig. 12: Drums, PSNR (dB)",
+        "noise_fraction",
+        100.0,
+        "noise",
+        "noise",
     ),
     "ablation": Study(
         "ablation",
@@ -71,8 +101,12 @@ STUDIES: dict[str, Study] = {
         {},
         "supplement H, Fig. 10 (real 'Sewing'): qualitative only — full best; short window "
         "artefacts; long window blur; no negatives: artefacts around the object",
+        slug="ablation",
     ),
 }
+# The studies whose levels turn the training poses (degrees): the same ranges, labels, pose
+# stats (the error refinement leaves), table columns and plot units.
+POSE_STUDIES = frozenset(name for name, spec in STUDIES.items() if spec.unit == "deg")
 
 ABLATION_HELP = {
     "full": "the fast preset as it is (window U{1..5 % of the loop}, negatives, distortion loss)",
@@ -91,16 +125,15 @@ def window_views(fraction: float, n_views: int) -> int:
 def level_overrides(study: str, level: Any, n_views: int, seed: int) -> dict[str, Any]:
     """TrainConfig overrides of one level: a PerturbConfig (pose, noise) or training knobs.
 
-    level: degrees (pose-error), percent (noise) or a variant name (ablation); n_views: views
-    per loop of the scene; seed: the perturbation seed.
+    level: degrees (pose-error, mount-error), percent (noise) or a variant name (ablation);
+    n_views: views per loop of the scene; seed: the perturbation seed.
     """
-    if study == "pose-error":
-        return {"perturb": PerturbConfig(pose_error_deg=float(level), seed=seed).validate()}
-    if study == "noise":
-        frac = float(level) / 100.0
-        return {"perturb": PerturbConfig(noise_fraction=frac, seed=seed).validate()}
-    if study != "ablation":
+    spec = STUDIES.get(study)
+    if spec is None:
         raise InputError(f"unknown study {study!r} (choose from {sorted(STUDIES)})")
+    if spec.perturb:
+        value = float(level) / spec.divisor
+        return {"perturb": PerturbConfig(**{spec.perturb: value}, seed=seed).validate()}
     if level == "full":
         return {}
     if level == "short":
@@ -117,8 +150,8 @@ def level_overrides(study: str, level: Any, n_views: int, seed: int) -> dict[str
 
 
 def parse_levels(study: str, items: list[str] | None) -> list:
-    """--levels for `study` (None: the defaults): numbers in ascending order for pose-error
-    (degrees, [0, 180)) and noise (percent, [0, 1000]); variant names for ablation."""
+    """--levels for `study` (None: the defaults): numbers in ascending order for the pose
+    studies (degrees, [0, 180)) and noise (percent, [0, 1000]); variant names for ablation."""
     spec = STUDIES[study]
     if not items:
         return list(spec.levels)
@@ -129,14 +162,15 @@ def parse_levels(study: str, items: list[str] | None) -> list:
         if len(set(items)) != len(items):
             raise InputError("--levels: a variant is named twice")
         return list(items)
-    hi, unit = (180.0, "degrees") if study == "pose-error" else (1000.0, "percent")
+    poses = study in POSE_STUDIES
+    hi, unit = (180.0, "degrees") if poses else (1000.0, "percent")
     out = []
     for x in items:
         try:
             v = float(x)
         except ValueError:
             raise InputError(f"--levels: {x!r} is not a number ({unit})") from None
-        ok = math.isfinite(v) and 0.0 <= v and (v < hi if study == "pose-error" else v <= hi)
+        ok = math.isfinite(v) and 0.0 <= v and (v < hi if poses else v <= hi)
         if not ok:
             raise InputError(f"--levels: {x} is outside [0, {hi:g}{')' if hi == 180 else ']'}")
         out.append(v)
@@ -147,7 +181,7 @@ def parse_levels(study: str, items: list[str] | None) -> list:
 
 def level_label(study: str, level: Any) -> str:
     """Short text of a level: "0.1°", "5 %", "short"."""
-    if study == "pose-error":
+    if study in POSE_STUDIES:
         return f"{level:g}°"
     if study == "noise":
         return f"{level:g} %"
@@ -155,12 +189,12 @@ def level_label(study: str, level: Any) -> str:
 
 
 def level_slug(study: str, level: Any) -> str:
-    """The run folder's name of a level: "pose-0.1deg", "noise-5pct", "ablation-short"."""
-    if study == "pose-error":
-        return f"pose-{level:g}deg"
-    if study == "noise":
-        return f"noise-{level:g}pct"
-    return f"ablation-{level}"
+    """The run folder's name of a level: "pose-0.1deg", "mount-2deg", "noise-5pct",
+    "ablation-short"."""
+    spec = STUDIES[study]
+    if not spec.numeric:
+        return f"{spec.slug}-{level}"
+    return f"{spec.slug}-{level:g}{'deg' if study in POSE_STUDIES else 'pct'}"
 
 
 def locate_break(levels: list[float], psnr: list[float | None]) -> dict[str, Any] | None:

@@ -16,6 +16,7 @@ import numpy as np
 
 from benchmarks.plots import plt, save_figure
 from benchmarks.session import finite
+from benchmarks.study_levels import POSE_STUDIES
 
 EARLY_STYLE = {"color": "tab:blue", "lw": 0.8, "alpha": 0.35, "marker": ".", "ms": 4}
 
@@ -53,7 +54,7 @@ def _numeric(axes, result: dict) -> None:
     def xs(values):
         return [x0 if v == 0 else v for v in values]
 
-    unit = "°" if result["study"] == "pose-error" else " %"
+    unit = "°" if result["study"] in POSE_STUDIES else " %"
     for key, ax in (("psnr", axes[0]), ("ssim", axes[1])):
         _early_lines(ax, rows, key, xs)
         _line(ax, xs([r["level"] for r in rows]), [r[key] for r in rows], "ours (at the budget)")

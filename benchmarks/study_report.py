@@ -12,6 +12,7 @@ import numpy as np
 from benchmarks.session import finite, jsonable
 from benchmarks.study_levels import (
     LONG_WINDOW_FRACTION,
+    POSE_STUDIES,
     SHORT_WINDOW_FRACTION,
     STUDIES,
     level_label,
@@ -72,17 +73,20 @@ def measured_perturbation(study: str, pert: dict | None) -> dict[str, Any]:
     """What the trainer measured on the data it trained with (RUN/config.json
     ["perturbation"]); a zero level was the identity, so it measured zero."""
     pert = pert or {}
-    if study == "pose-error":
-        p = pert.get("pose")
+    if study in POSE_STUDIES:  # the "pose" or the "mount" report: the same measurements
+        p = pert.get(STUDIES[study].report)
         if not p:
             return {"mean_deg": 0.0, "max_deg": 0.0, "min_deg": 0.0, "poses": None}
-        return {
+        out = {
             "mean_deg": p["measured_mean_deg"],
             "max_deg": p["measured_max_deg"],
             "min_deg": p["measured_min_deg"],
             "poses": p.get("poses"),
             "centre_shift_max": p.get("centre_shift_max"),
         }
+        if "axis" in p:  # the mount turn's one camera-frame axis
+            out["axis"] = p["axis"]
+        return out
     if study == "noise":
         n = pert.get("noise")
         if not n:
@@ -139,6 +143,7 @@ def level_row(
 
 CALIBRATION_KNOBS = (
     "refine_poses",
+    "refine_shared",
     "refine_optimizer",
     "refine_lr",
     "refine_start",
@@ -305,8 +310,9 @@ def _table(result: dict) -> list[str]:
     ref = rows[0]["psnr"] if rows else float("nan")
     if study == "ablation":
         head = "| variant | win_min..win_max (views) | neg_ratio | distortion_weight |"
-    elif study == "pose-error":
-        head = "| pose error | measured mean / max (°) | after refinement mean / max (°) |"
+    elif study in POSE_STUDIES:
+        what = study.replace("-", " ")
+        head = f"| {what} | measured mean / max (°) | after refinement mean / max (°) |"
     else:
         head = "| noise | measured added fraction (events) |"
     n_first = head.count("|") - 1
@@ -338,7 +344,7 @@ def _first_cells(study: str, r: dict) -> str:
             f"| {name} | {k['win_min']}..{k['win_max']} | {_f(k['neg_ratio'], 'g')} | "
             f"{_f(k['distortion_weight'], 'g')} |"
         )
-    if study == "pose-error":
+    if study in POSE_STUDIES:
         return (
             f"| {name} | {_f(m['mean_deg'], '.4g')} / {_f(m['max_deg'], '.4g')} | {_pose_left(r)} |"
         )
@@ -378,9 +384,12 @@ def _break_lines(result: dict) -> list[str]:
             return []
         worst = min(rows, key=lambda r: r["psnr"])
         return [f"Lowest PSNR: {worst['label']} ({worst['psnr']:.2f} dB)."]
-    unit = "°" if study == "pose-error" else " %"
+    unit = "°" if study in POSE_STUDIES else " %"
     out = []
-    for who, b in (("Ours", result.get("break")), ("Supplement", result["supplement"]["break"])):
+    pairs = [("Ours", result.get("break"))]
+    if result["supplement"]["psnr"]:  # a study the supplement has (not mount-error)
+        pairs.append(("Supplement", result["supplement"]["break"]))
+    for who, b in pairs:
         if b is None:
             out.append(f"{who}: fewer than two levels with a PSNR, no break to locate.")
             continue

@@ -2,10 +2,11 @@
 
     python -m benchmarks.study_sweep OUT [MORE ...]
 
-Reads OUT/sweep_SCENE_NAME_L<level>/pose-error.json (one level each; and MORE sweeps' folders,
-an option's name prefixed with its folder's) and writes OUT/sweep.md and OUT/sweep.json: per
-scene, option and level the PSNR, the remaining mean rotation error and centre offset of the
-refined poses, the steps and train seconds (runs side by side: not a step time); and
+Reads OUT/sweep_SCENE_NAME_L<level>/STUDY.json (one level each, STUDY a pose study: pose-error
+or mount-error; and MORE sweeps' folders, an option's name prefixed with its folder's) and
+writes OUT/sweep.md and OUT/sweep.json: per scene, option and level the PSNR, the remaining
+mean rotation error and centre offset of the refined poses, the steps and train seconds (runs
+side by side: not a step time), with a study column when the sweeps hold more than one; and
 OUT/sweep.png: per scene, each option's PSNR at 1° against its PSNR at 0° (the trade-off:
 refinement must win at 1° without costing at 0°).
 """
@@ -19,6 +20,7 @@ from pathlib import Path
 
 from benchmarks.cli import benchmark_main
 from benchmarks.session import jsonable
+from benchmarks.study_levels import POSE_STUDIES
 from fastenerf.errors import InputError
 from fastenerf.io import atomic_path, write_json
 
@@ -26,42 +28,59 @@ _DIR = re.compile(r"sweep_(?P<scene>[^_]+)_(?P<name>.+)_L(?P<level>[0-9.]+)$")
 
 
 def collect(out: Path, prefix: str = "") -> list[dict]:
-    """One row per finished run, sorted by scene, option name and level."""
+    """One row per finished run (a folder may hold runs of each pose study), sorted by scene,
+    option name, study and level."""
     rows = []
     for d in sorted(out.glob("sweep_*_L*")):
         m = _DIR.match(d.name)
-        if not m or not (d / "pose-error.json").is_file():
+        if not m:
             continue
-        study = json.loads((d / "pose-error.json").read_text())
-        for lv in study["levels"]:
-            stats = (lv.get("self_calibration") or {}).get("stats", {})
-            rows.append(
-                {
-                    "scene": m["scene"],
-                    "name": prefix + m["name"],
-                    "level": float(lv["level"]),
-                    "psnr": lv.get("psnr"),
-                    "pose_error_deg": stats.get("pose_error_deg"),
-                    "pose_centre_error": stats.get("pose_centre_error"),
-                    "steps": lv.get("steps"),
-                    "train_s": lv.get("train_s"),
-                    "commit": (study.get("git_commits") or [None])[0],
-                }
-            )
-    return sorted(rows, key=lambda r: (r["scene"], r["name"], r["level"]))
+        for name in sorted(POSE_STUDIES):
+            if (d / f"{name}.json").is_file():
+                study = json.loads((d / f"{name}.json").read_text())
+                rows += [_row(m, prefix + m["name"], name, study, lv) for lv in study["levels"]]
+    return sorted(rows, key=_order)
+
+
+def _row(m: re.Match, option: str, name: str, study: dict, lv: dict) -> dict:
+    stats = (lv.get("self_calibration") or {}).get("stats", {})
+    return {
+        "scene": m["scene"],
+        "name": option,
+        "study": name,
+        "level": float(lv["level"]),
+        "psnr": lv.get("psnr"),
+        "pose_error_deg": stats.get("pose_error_deg"),
+        "pose_centre_error": stats.get("pose_centre_error"),
+        "steps": lv.get("steps"),
+        "train_s": lv.get("train_s"),
+        "commit": (study.get("git_commits") or [None])[0],
+    }
+
+
+def _order(r: dict) -> tuple:
+    return (r["scene"], r["name"], r["study"], r["level"])
+
+
+def _mixed(rows: list[dict]) -> bool:
+    """Whether the rows hold more than one study (then each option names its study)."""
+    return len({r["study"] for r in rows}) > 1
 
 
 def markdown(rows: list[dict]) -> str:
     def f(v, fmt):
         return "—" if v is None else format(v, fmt)
 
+    mixed = _mixed(rows)
     lines = [
-        "| scene | option | level | PSNR (dB) | pose error (°) | centre offset | steps | train s |",
-        "|---|---|---:|---:|---:|---:|---:|---:|",
+        "| scene | option |" + (" study |" if mixed else "") + " level | PSNR (dB) | "
+        "pose error (°) | centre offset | steps | train s |",
+        "|---|---|" + ("---|" if mixed else "") + "---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
+        study = f" {r['study']} |" if mixed else ""
         lines.append(
-            f"| {r['scene']} | {r['name']} | {r['level']:g}° | {f(r['psnr'], '.2f')} | "
+            f"| {r['scene']} | {r['name']} |{study} {r['level']:g}° | {f(r['psnr'], '.2f')} | "
             f"{f(r['pose_error_deg'], '.3f')} | {f(r['pose_centre_error'], '.4f')} | "
             f"{f(r['steps'], 'd')} | {f(r['train_s'], '.0f')} |"
         )
@@ -78,11 +97,13 @@ def plot(rows: list[dict], path: Path) -> Path:
     scenes = sorted({r["scene"] for r in rows})
     fig, axes = plt.subplots(1, max(1, len(scenes)), figsize=(5.5 * max(1, len(scenes)), 4.6))
     axes = [axes] if len(scenes) <= 1 else list(axes)
+    mixed = _mixed(rows)
     for ax, s in zip(axes, scenes, strict=False):
         by = {}
         for r in rows:
             if r["scene"] == s and r["psnr"] is not None:
-                by.setdefault(r["name"], {})[r["level"]] = r["psnr"]
+                name = f"{r['name']} ({r['study']})" if mixed else r["name"]
+                by.setdefault(name, {})[r["level"]] = r["psnr"]
         pts = [(n, v[0.0], v[1.0]) for n, v in sorted(by.items()) if 0.0 in v and 1.0 in v]
         for n, x, y in pts:
             ax.scatter(x, y, s=18)
@@ -92,7 +113,7 @@ def plot(rows: list[dict], path: Path) -> Path:
         ax.plot([lo, hi], [lo, hi], "k:", lw=0.8, label="1° = 0°")
         ax.plot([lo, hi], [lo - 1, hi - 1], "k--", lw=0.8, label="1° = 0° − 1 dB")
         for n, v in by.items():  # runs without refinement: the 0° PSNR to keep
-            if n.split(":")[-1] == "plain" and 0.0 in v:
+            if n.split(":")[-1].split(" ")[0] == "plain" and 0.0 in v:
                 ax.axvline(v[0.0], color="grey", lw=0.8, label=f"{n} at 0°")
         ax.set(title=s, xlabel="PSNR at 0° (dB)", ylabel="PSNR at 1° (dB)")
         ax.legend(fontsize=7)
@@ -117,8 +138,8 @@ def run(args: argparse.Namespace) -> int:
     for m in args.more:
         rows += collect(Path(m), prefix=f"{Path(m).name}:")
     if not rows:  # an empty table must not replace a sweep's own
-        raise InputError(f"{out}: no finished run (sweep_SCENE_NAME_L<level>/pose-error.json)")
-    rows.sort(key=lambda r: (r["scene"], r["name"], r["level"]))
+        raise InputError(f"{out}: no finished run (sweep_SCENE_NAME_L<level>/STUDY.json)")
+    rows.sort(key=_order)
     try:
         plot(rows, out / "sweep.png")
         write_json(out / "sweep.json", jsonable({"runs": rows}))

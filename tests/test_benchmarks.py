@@ -328,18 +328,19 @@ def test_step_ops_counts_every_stage_on_cpu(tiny_scene, tmp_path, capsys):
 
 
 def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
-    """benchmarks.study_sweep reads one pose-error.json per (scene, option, level) folder of
-    every sweep given, tables them (names prefixed by the other sweeps' folders) and plots
-    PSNR at 1° against 0°."""
+    """benchmarks.study_sweep reads one pose-error.json (or mount-error.json: a pose study) per
+    (scene, option, level) folder of every sweep given, tables them (names prefixed by the
+    other sweeps' folders; a study column once there are two studies) and plots PSNR at 1°
+    against 0°."""
     from benchmarks import study_sweep
 
-    def run(folder, name, level, psnr, err=None):
+    def run(folder, name, level, psnr, err=None, study="pose-error"):
         d = tmp_path / folder / f"sweep_blocks_{name}_L{level:g}"
-        d.mkdir(parents=True)
+        d.mkdir(parents=True, exist_ok=True)
         stats = {} if err is None else {"pose_error_deg": err, "pose_centre_error": 0.0}
         lv = {"level": level, "psnr": psnr, "steps": 30, "train_s": 1.0,
               "self_calibration": {"stats": stats} if stats else None}  # fmt: skip
-        (d / "pose-error.json").write_text(json.dumps({"levels": [lv], "git_commits": ["abc"]}))
+        (d / f"{study}.json").write_text(json.dumps({"levels": [lv], "git_commits": ["abc"]}))
 
     run("a", "plain", 0, 30.0)
     run("a", "new_one", 0, 29.9)
@@ -363,3 +364,19 @@ def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     assert not any((tmp_path / "empty").iterdir())
     assert study_sweep.main([str(tmp_path / "a"), str(tmp_path / "missing")]) == 2
     assert (tmp_path / "a" / "sweep.md").read_text() == md
+    # STUDY=mount-error sweeps (gpu_sweep.sh): alone, the table as before; beside pose-error
+    # runs (even in one folder), each row names its study
+    run("m", "shared", 0, 28.0, 0.01, study="mount-error")
+    run("m", "shared", 2, 27.5, 0.2, study="mount-error")
+    assert study_sweep.main([str(tmp_path / "m")]) == 0
+    assert "| blocks | shared | 2° | 27.50 | 0.200 |" in (tmp_path / "m" / "sweep.md").read_text()
+    run("m", "shared", 0, 29.0, study="pose-error")
+    assert study_sweep.main([str(tmp_path / "m")]) == 0
+    rows = json.loads((tmp_path / "m" / "sweep.json").read_text())["runs"]
+    assert [(r["study"], r["level"]) for r in rows] == [
+        ("mount-error", 0.0),
+        ("mount-error", 2.0),
+        ("pose-error", 0.0),
+    ]
+    md = (tmp_path / "m" / "sweep.md").read_text()
+    assert "| option | study | level |" in md and "| shared | mount-error | 2° | 27.50 |" in md

@@ -72,29 +72,65 @@ def check_outputs(out, name: str) -> tuple[dict, str]:
     return res, md
 
 
+# The pose studies at 0° and 1°, one step each; the mount study refines its shared row back
+# (the names continue FAST's --set).
+ANGLE_EXTRA = {"pose-error": (), "mount-error": ("refine_poses=true", "refine_shared=true")}
+
+
 @pytest.fixture(scope="module")
-def pose_study(tiny_scene, tmp_path_factory):
-    out = tmp_path_factory.mktemp("study") / "pose"
-    assert study("pose-error", tiny_scene, out, "--levels", "1", "0", "--steps", "1") == 0
-    return out
+def angle_studies(tiny_scene, tmp_path_factory):
+    """name -> the OUT of that pose study, run once per module on first use."""
+    done: dict = {}
+
+    def get(name):
+        if name not in done:
+            out = tmp_path_factory.mktemp("study") / name
+            extra = (*ANGLE_EXTRA[name], "--levels", "1", "0", "--steps", "1")
+            assert study(name, tiny_scene, out, *extra) == 0
+            done[name] = out
+        return done[name]
+
+    return get
 
 
-def test_pose_study_applies_the_angle_it_reports(pose_study):
-    res, md = check_outputs(pose_study, "pose-error")
+@pytest.fixture(scope="module")
+def pose_study(angle_studies):
+    return angle_studies("pose-error")
+
+
+@pytest.mark.parametrize("name", sorted(lv.POSE_STUDIES))
+def test_pose_studies_apply_the_angle_they_report(angle_studies, name):
+    out = angle_studies(name)
+    spec = lv.STUDIES[name]
+    res, md = check_outputs(out, name)
     rows = {r["level"]: r for r in res["levels"]}
     assert list(rows) == [0.0, 1.0]  # levels in ascending order
-    assert rows[0.0]["measured"]["mean_deg"] == 0.0 and rows[0.0]["perturbation"]["pose"] is None
+    assert rows[0.0]["measured"]["mean_deg"] == 0.0
+    assert rows[0.0]["perturbation"][spec.report] is None
     m = rows[1.0]["measured"]
     assert abs(m["mean_deg"] - 1.0) < 1e-6 and abs(m["max_deg"] - 1.0) < 1e-6
     assert m["poses"] == 100  # every training pose of the 100-view loop, once
     # the JSON's number is the trainer's own measurement of the rig it trained with
-    conf = run_config(pose_study, "pose-1deg")
-    assert conf["train"]["perturb"]["pose_error_deg"] == 1.0
-    assert conf["perturbation"]["pose"]["measured_mean_deg"] == m["mean_deg"]
-    assert run_config(pose_study, "pose-0deg")["perturbation"]["pose"] is None
+    conf = run_config(out, f"{spec.slug}-1deg")
+    assert conf["train"]["perturb"][spec.perturb] == 1.0
+    assert conf["perturbation"][spec.report]["measured_mean_deg"] == m["mean_deg"]
+    assert run_config(out, f"{spec.slug}-0deg")["perturbation"][spec.report] is None
     # the same clean test views score both levels
     assert res["break"]["largest_drop"]["from"] == 0.0 and res["break"]["largest_drop"]["to"] == 1
-    assert "27.43" in md and "18.11" in md and "between 0.1° and 1°" in md
+    assert "°" in md and f"| {name.replace('-', ' ')} | measured mean / max (°) |" in md
+    if name == "pose-error":
+        assert "27.43" in md and "18.11" in md and "between 0.1° and 1°" in md
+        assert "| 1° | 1 / 1 | no refinement |" in md
+        return
+    # mount-error: one camera-frame axis, refined back with the shared row; no supplement
+    assert len(m["axis"]) == 3 and abs(math.hypot(*m["axis"]) - 1.0) < 1e-9
+    assert run_config(out, "mount-1deg")["perturbation"]["pose"] is None
+    cal = rows[1.0]["self_calibration"]
+    assert cal["knobs"]["refine_shared"] is True
+    assert 0.0 <= cal["stats"]["pose_error_deg"] <= cal["stats"]["pose_error_max_deg"] < 2.0
+    assert res["supplement"]["psnr"] == {} and res["supplement"]["break"] is None
+    assert "no mount-error study" in md and "Supplement:" not in md
+    assert "no refinement" not in md
 
 
 def test_resumed_study_redoes_nothing_and_unfinished_levels_continue(pose_study, tiny_scene):
@@ -172,13 +208,28 @@ def test_break_location_and_window_scaling():
     assert lv.level_overrides("ablation", "short", 30, 0)["win_max"] == 1  # never 0
     p = lv.level_overrides("noise", 15, 100, 7)["perturb"]
     assert (p.noise_fraction, p.seed) == (0.15, 7)
+    p = lv.level_overrides("mount-error", 2, 100, 3)["perturb"]
+    assert (p.mount_error_deg, p.pose_error_deg, p.noise_fraction, p.seed) == (2.0, 0, 0, 3)
+    p = lv.level_overrides("pose-error", 0.5, 100, 3)["perturb"]
+    assert (p.pose_error_deg, p.mount_error_deg) == (0.5, 0.0)
+    assert (lv.level_label("mount-error", 0.5), lv.level_slug("mount-error", 2.0)) == (
+        "0.5°",
+        "mount-2deg",
+    )
+    assert lv.supplement_break("mount-error") is None
 
 
 def test_bad_levels_are_one_line_errors(tiny_scene, tmp_path, capsys):
     assert lv.parse_levels("noise", ["30", "0", "5"]) == [0.0, 5.0, 30.0]
+    assert lv.parse_levels("mount-error", ["5", "0", "179.5"]) == [0.0, 5.0, 179.5]
+    assert lv.parse_levels("mount-error", None) == [0.0, 0.5, 1.0, 2.0, 5.0]
     for name, bad in (
         ("pose-error", ["180"]),
         ("pose-error", ["-1"]),
+        ("mount-error", ["180"]),
+        ("mount-error", ["-0.5"]),
+        ("mount-error", ["nan"]),
+        ("mount-error", ["1", "1.0"]),
         ("noise", ["abc"]),
         ("noise", ["5", "5.0"]),
         ("ablation", ["full", "medium"]),
@@ -188,18 +239,29 @@ def test_bad_levels_are_one_line_errors(tiny_scene, tmp_path, capsys):
     assert study("ablation", tiny_scene, tmp_path / "x", "--levels", "medium") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "medium" in err[0] and "Traceback" not in err[0]
+    assert study("mount-error", tiny_scene, tmp_path / "m", "--levels", "1", "180") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "outside [0, 180)" in err[0] and "Traceback" not in err[0]
+    assert not (tmp_path / "m" / "runs").exists()
     assert study("pose-error", tiny_scene, tmp_path / "x", "--grid-view", "3") == 2
     assert not (tmp_path / "x" / "runs").exists()
 
 
 def test_help_documents_levels_and_outputs(capsys):
-    for argv in (["bench", "study", "--help"], ["bench", "study", "noise", "--help"]):
+    for argv in (
+        ["bench", "study", "--help"],
+        ["bench", "study", "noise", "--help"],
+        ["bench", "study", "mount-error", "--help"],
+    ):
         with pytest.raises(SystemExit) as e:
             cli_main(argv)
         assert e.value.code == 0
     text = capsys.readouterr().out
     assert "0 0.01 0.1 0.3 0.5 1 2 degrees" in text and "no-distortion-loss" in text
     assert "STUDY_grid.png" in text and "noise.md" in text and "27.31" in text
+    assert "mount-error 0 0.5 1 2 5 degrees" in text and "refine_shared=true" in text
+    flat = " ".join(text.split())  # help text wraps anywhere
+    assert "no mount-error study" in flat and "mount-error.md" in flat
 
 
 def test_threshold_study_simulates_trains_three_ways_and_reports_the_ratio(tmp_path):

@@ -16,7 +16,7 @@ from pathlib import Path
 
 HELP = (
     "benchmarks: error against training time (ngp vs vanilla), ngp accuracy knobs, kernels, "
-    "robustness studies (pose error, noise, ablation)"
+    "robustness studies (pose error, mount error, noise, ablation)"
 )
 
 BENCHMARKS = {
