@@ -7,6 +7,11 @@ import sys
 from collections.abc import Callable
 
 from fastenerf.errors import FastenerfError
+from fastenerf.outputs import OutputKind, claim_output
+
+# A benchmark's --out folder: written into (its own files replaced one by one), never
+# replaced whole, so any folder is one; a file there, or an unwritable place, is refused.
+BENCH_FOLDER = OutputKind("benchmark output folder", True, lambda p: True, replaced_whole=False)
 
 
 def benchmark_main(
@@ -16,16 +21,20 @@ def benchmark_main(
     run: Callable[[argparse.Namespace], int],
     argv: list[str] | None = None,
     prog: str | None = None,
+    out_folder: bool = False,
 ) -> int:
     """Parse `argv` with the benchmark's arguments and run it; a FastenerfError (bad input)
     prints one line "NAME: error: ..." and returns 2. `doc`: the module docstring (its first
-    paragraph is the help text)."""
+    paragraph is the help text); out_folder: `--out` names a folder the benchmark writes into,
+    checked before any work (`fastenerf.outputs.claim_output`)."""
     p = argparse.ArgumentParser(
         prog=prog or f"python -m benchmarks.{name}", description=doc.split("\n\n")[0]
     )
     add_arguments(p)
     args = p.parse_args(argv)
     try:
+        if out_folder and getattr(args, "out", None):
+            claim_output(args.out, BENCH_FOLDER)
         return run(args)
     except FastenerfError as e:
         print(f"{name}: error: {e}", file=sys.stderr)

@@ -584,7 +584,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    return benchmark_main("error_vs_time", __doc__, add_arguments, run, argv, prog)
+    return benchmark_main("error_vs_time", __doc__, add_arguments, run, argv, prog, out_folder=True)
 
 
 if __name__ == "__main__":

@@ -385,7 +385,7 @@ def summarize(curves: list[dict], variants: dict[str, dict], args, scene, n_vari
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    return benchmark_main("knobs", __doc__, add_arguments, run, argv, prog)
+    return benchmark_main("knobs", __doc__, add_arguments, run, argv, prog, out_folder=True)
 
 
 if __name__ == "__main__":

@@ -182,7 +182,7 @@ def markdown(res: dict) -> str:
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    return benchmark_main("mesh_texture", __doc__, add_arguments, run, argv, prog)
+    return benchmark_main("mesh_texture", __doc__, add_arguments, run, argv, prog, out_folder=True)
 
 
 if __name__ == "__main__":

@@ -343,7 +343,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
-    return benchmark_main("profile_step", __doc__, add_arguments, run, argv, prog)
+    return benchmark_main("profile_step", __doc__, add_arguments, run, argv, prog, out_folder=True)
 
 
 if __name__ == "__main__":

@@ -380,3 +380,27 @@ def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     ]
     md = (tmp_path / "m" / "sweep.md").read_text()
     assert "| option | study | level |" in md and "| shared | mount-error | 2° | 27.50 |" in md
+
+
+@pytest.mark.parametrize(
+    "module, args",
+    [
+        ("step_ops", ["--scene", "S"]),
+        ("profile_step", ["--scene", "S"]),
+        ("error_vs_time", ["--scenes", "S"]),
+        ("cpu_preset", ["--scene", "S"]),
+        ("knobs", []),
+        ("mesh_texture", ["RUN"]),
+    ],
+)
+def test_an_out_that_is_a_file_is_refused_before_any_work(module, args, tmp_path, capsys):
+    import importlib
+
+    bench = importlib.import_module(f"benchmarks.{module}")
+    taken = tmp_path / "notes.txt"
+    taken.write_text("keep")
+    for out in (taken, taken / "sub"):  # a file, and a folder under a file
+        assert bench.main([*args, "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"{module}: error: --out {out}"), err
+    assert taken.read_text() == "keep"
