@@ -14,13 +14,10 @@ from __future__ import annotations
 
 import torch
 
+from .kernels.common import as_float32
+
 # Rec. 709 luminance of linear RGB: what a mono sensor integrates (approximately).
 LUMA_709 = (0.2126, 0.7152, 0.0722)
-
-
-def _float32(t: torch.Tensor) -> torch.Tensor:
-    """t in float32: t itself where it is (a no-op `.float()` still dispatches an op)."""
-    return t if t.dtype == torch.float32 else t.float()
 
 
 def linear_intensity(
@@ -31,7 +28,7 @@ def linear_intensity(
     channel: (B,) int64 Bayer channel (0 R, 1 G, 2 B), or None for a mono sensor (luminance).
     Computed in float32 whatever the autocast dtype of `rgb`.
     """
-    lin = _float32(rgb).clamp_min(0.0) ** gamma
+    lin = as_float32(rgb).clamp_min(0.0) ** gamma
     if channel is None:
         return lin @ lin.new_tensor(LUMA_709)
     return lin.gather(1, channel.view(-1, 1)).squeeze(1)
@@ -69,7 +66,7 @@ def event_loss(
     weight: (B,) float32 0/1, the pixels that count (None: all); the mean is over them.
     """
     pred = event_prediction(rgb0, rgb1, channel, gamma, eps)
-    err = (pred - _float32(target)) ** 2
+    err = (pred - as_float32(target)) ** 2
     if weight is None:
         return torch.mean(err)
     return (err * weight).sum() / weight.sum().clamp_min(1.0)
