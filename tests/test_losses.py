@@ -165,7 +165,9 @@ def test_lr_decay_start_holds_the_lr_then_decays_over_the_rest():
     ratio = late.lr_final / late.lr
     assert lr_at(late, 750) == pytest.approx(late.lr * ratio**0.5, rel=1e-12)
     assert lr_at(late, 1000) == pytest.approx(late.lr_final, rel=1e-12)
-    # 0 (the default) is the plain exponential decay from the first step, bit for bit
-    plain = train_preset("fast", "ngp", steps=1000)
+    # the fast preset holds the lr for 70 % of the budget; 0 is the plain exponential decay
+    # from the first step, bit for bit
+    assert train_preset("fast", "ngp", steps=1000).lr_decay_start == 0.7
+    plain = train_preset("fast", "ngp", steps=1000, lr_decay_start=0.0)
     assert plain.lr_decay_start == 0.0
     assert lr_at(plain, 250) == plain.lr * ratio**0.25
