@@ -327,6 +327,29 @@ def test_step_ops_counts_every_stage_on_cpu(tiny_scene, tmp_path, capsys):
     assert err.startswith("step_ops: error:") and len(err.splitlines()) == 1
 
 
+def test_mount_gauge_finds_the_turns_a_rigid_motion_imitates(tiny_scene, tmp_path, capsys):
+    """`python -m benchmarks.mount_gauge`: on an orbit a pitch of every camera looks like the
+    scene moved up (mostly imitated), a yaw like nothing rigid (not imitated); bad input is
+    one line and exit code 2."""
+    from benchmarks import mount_gauge
+
+    out = tmp_path / "gauge"
+    argv = ["--scene", str(tiny_scene), "--views", "24", "--points", "60", "--perturb-seed", "0"]
+    assert mount_gauge.main(argv + ["--out", str(out)]) == 0
+    turns = json.loads((out / "mount_gauge.json").read_text())["turns"]
+    pitch, yaw = turns["x (pitch)"], turns["y (yaw)"]
+    assert pitch["rms_px"] > 0 and yaw["rms_px"] > 0
+    assert pitch["imitated"] > 0.5 and pitch["rigid_shift"] > 0
+    assert yaw["imitated"] < 0.1
+    assert turns["seed 0"]["rms_px_after_rigid"] <= turns["seed 0"]["rms_px"]
+    assert "| y (yaw) |" in (out / "mount_gauge.md").read_text()
+    capsys.readouterr()
+    for bad in (["--deg", "0"], ["--scene", str(tmp_path / "missing")]):
+        assert mount_gauge.main(argv + bad) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("mount_gauge: error:") and len(err.splitlines()) == 1, err
+
+
 def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     """benchmarks.study_sweep reads one pose-error.json (or mount-error.json: a pose study) per
     (scene, option, level) folder of every sweep given, tables them (names prefixed by the
@@ -391,6 +414,7 @@ def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
         ("cpu_preset", ["--scene", "S"]),
         ("knobs", []),
         ("mesh_texture", ["RUN"]),
+        ("mount_gauge", ["--scene", "S"]),
     ],
 )
 def test_an_out_that_is_a_file_is_refused_before_any_work(module, args, tmp_path, capsys):
