@@ -96,6 +96,11 @@ def perturb_poses(
     return _turned(rig, t, c2w, delta, grid_t, sampled, angle_deg, seed)
 
 
+def mount_axis(seed: int) -> np.ndarray:
+    """The camera-frame unit axis (3,) of `perturb_mount`'s turn for `seed`."""
+    return random_axes(np.random.default_rng([_MOUNT_STREAM, int(seed)]), 1)[0]
+
+
 def perturb_mount(
     rig: Rig, angle_deg: float, seed: int = 0, grid_t: np.ndarray | None = None
 ) -> tuple[Rig, dict]:
@@ -105,7 +110,7 @@ def perturb_mount(
     the camera-frame axis of M); M being shared, slerp between samples keeps it exactly."""
     PerturbConfig(mount_error_deg=angle_deg, seed=seed).validate("perturb_mount")
     t, c2w, sampled = _samples(rig, grid_t, "perturb_mount")
-    axis = random_axes(np.random.default_rng([_MOUNT_STREAM, int(seed)]), 1)
+    axis = mount_axis(seed)[None]
     delta = np.repeat(_axis_angle_matrices(axis, np.deg2rad(float(angle_deg))), len(t), 0)
     out, report = _turned(rig, t, c2w, delta, grid_t, sampled, angle_deg, seed)
     report["axis"] = axis[0].tolist()
