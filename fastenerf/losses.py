@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import torch
 
+from .kernels import event_loss as fused_event
 from .kernels.common import as_float32
 
 # Rec. 709 luminance of linear RGB: what a mono sensor integrates (approximately).
@@ -86,6 +87,7 @@ def total_loss(
     gamma: float,
     eps: float,
     distortion_weight: float = 0.0,
+    fused: bool = False,
 ) -> tuple[torch.Tensor, dict]:
     """The training objective from one RenderOutput over 2B rays: B pixels at t0, then at t1.
 
@@ -95,7 +97,8 @@ def total_loss(
     target: (B,) E(u; t0, t1]; channel: (B,) Bayer channel or None (mono).
     A render that could not march every ray (`out["valid"]`, (2B,) bool: a fixed sample buffer
     overflowed) leaves out the pixels whose t0 or t1 ray is missing; parts["dropped"] is their
-    share.
+    share. fused: the event loss as one Warp kernel each way (`kernels.event_loss`, the same
+    loss in a few host ops), else the torch expression above.
     Returns (loss, parts) with parts detached scalar tensors, for logging.
     """
     b = target.shape[0]
@@ -106,12 +109,17 @@ def total_loss(
         valid0, valid1 = _halves(out["valid"], b)
         weight = (valid0 & valid1).float()
         parts["dropped"] = 1.0 - weight.mean()
-    ev = event_loss(*_halves(rgb, b), target, channel, gamma, eps, weight)
+
+    def events(rgb):
+        if fused:
+            return fused_event.event_loss(rgb, target, channel, gamma, eps, weight)
+        return event_loss(*_halves(rgb, b), target, channel, gamma, eps, weight)
+
+    ev = events(rgb)
     loss = ev
     parts["event"] = ev
     if "rgb_coarse" in out:
-        rc = out["rgb_coarse"]
-        evc = event_loss(*_halves(rc, b), target, channel, gamma, eps, weight)
+        evc = events(out["rgb_coarse"])
         loss = loss + evc
         parts["event_coarse"] = evc
     if distortion_weight > 0 and "distortion" in out:

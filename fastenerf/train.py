@@ -417,6 +417,7 @@ class Trainer:
                 gamma=cfg.gamma,
                 eps=cfg.log_eps,
                 distortion_weight=cfg.distortion_weight,
+                fused=True,
             )
             if reg is not None:
                 loss = loss + reg

@@ -435,6 +435,7 @@ def test_options_off_step_is_what_it_was(scene, tmp_path):
             gamma=c.gamma,
             eps=c.log_eps,
             distortion_weight=c.distortion_weight,
+            fused=True,  # the trainer's event loss (kernels/event_loss.py)
         )
         ref.optimizer.zero_grad(set_to_none=True)
         loss.backward()
