@@ -46,7 +46,7 @@ def project_all(c2w: np.ndarray, points: np.ndarray, intrinsics) -> np.ndarray:
     w2c = np.linalg.inv(c2w)
     cam = np.einsum("vij,nj->vni", w2c[:, :3, :3], points) + w2c[:, None, :3, 3]
     if np.any(cam[..., 2] <= 0):
-        raise InputError("mount_gauge: a point of the scene's box is behind a camera")
+        raise InputError("a point of the scene's box is behind a camera")
     return np.stack([intrinsics.project(c) for c in cam])
 
 
@@ -81,7 +81,12 @@ def imitation(c2w, points, intrinsics, axis, deg: float) -> dict:
 
 def run(args: argparse.Namespace) -> int:
     if not (0 < args.deg <= 30):
-        raise InputError(f"mount_gauge: --deg must be in (0, 30], got {args.deg}")
+        raise InputError(f"--deg must be in (0, 30], got {args.deg}")
+    for flag, n in (("--views", args.views), ("--points", args.points)):
+        if n < 1:
+            raise InputError(f"{flag} must be at least 1, got {n}")
+    if any(s < 0 for s in args.perturb_seed):
+        raise InputError(f"--perturb-seed must be >= 0, got {args.perturb_seed}")
     scene = load_scene_folder(args.scene)
     cfg, rig = scene.config, scene.rig()
     t = np.linspace(cfg.t_start_us, cfg.t_end_us, args.views, endpoint=False).astype(np.int64)

@@ -344,10 +344,12 @@ def test_mount_gauge_finds_the_turns_a_rigid_motion_imitates(tiny_scene, tmp_pat
     assert turns["seed 0"]["rms_px_after_rigid"] <= turns["seed 0"]["rms_px"]
     assert "| y (yaw) |" in (out / "mount_gauge.md").read_text()
     capsys.readouterr()
-    for bad in (["--deg", "0"], ["--scene", str(tmp_path / "missing")]):
+    bad_args = (["--deg", "0"], ["--views", "0"], ["--points", "-3"], ["--perturb-seed", "-1"])
+    for bad in (*bad_args, ["--scene", str(tmp_path / "missing")]):
         assert mount_gauge.main(argv + bad) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("mount_gauge: error:") and len(err.splitlines()) == 1, err
+        assert "mount_gauge: error: mount_gauge" not in err
 
 
 def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
