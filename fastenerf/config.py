@@ -544,7 +544,7 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
     # - window length re-drawn every step: every end view meets every length over training
     #   instead of one fixed length per view (supplement G found random lengths essential).
     # - lr held for 70 % of the budget, then exponential decay to lr/10: the high lr learns,
-    #   the late decay removes the noise floor (a decay from the first step lost 0.0-0.7 dB).
+    #   the late decay removes the noise floor (benchmarks/RESULTS.md: every built-in scene).
     "fast": {
         "win_redraw": "step",
         "windows_per_step": 16,

@@ -16,9 +16,7 @@ import torch
 
 from .kernels import event_loss as fused_event
 from .kernels.common import as_float32
-
-# Rec. 709 luminance of linear RGB: what a mono sensor integrates (approximately).
-LUMA_709 = (0.2126, 0.7152, 0.0722)
+from .kernels.event_loss import LUMA_709
 
 
 def linear_intensity(

@@ -4,7 +4,7 @@
     pred  = log(I(c1) + eps) - log(I(c0) + eps)
     loss  = sum_u w_u (pred_u - E_u)**2 / W,     W = max(sum_u w_u, 1) (all w = 1: W = B)
 
-The torch expression of the same loss dispatches some 30 ops forward and 20 autograd nodes
+The torch expression of the same loss dispatches tens of ops forward and autograd nodes
 backward on the host every step; here it is one launch each way plus the sum.
 """
 
@@ -17,7 +17,10 @@ from .common import as_float32, init, launch
 
 init()
 
-LUMA_R, LUMA_G, LUMA_B = 0.2126, 0.7152, 0.0722
+# Rec. 709 luminance of linear RGB: what a mono sensor integrates (approximately); the torch
+# loss (fastenerf.losses) uses the same weights.
+LUMA_709 = (0.2126, 0.7152, 0.0722)
+LUMA_R, LUMA_G, LUMA_B = LUMA_709
 
 
 @wp.func
