@@ -369,6 +369,9 @@ class TrainConfig:
     perturb: PerturbConfig = field(default_factory=lambda: PerturbConfig())
     """The robustness studies' perturbations of the training data (pose error, noise events)."""
     # Self-calibration (issue #20; fastenerf/self_calibration.py): both off by default.
+    smooth_poses: int = field(default=0, metadata={"min": 0, "max": 1 << 20})
+    """Fit the training poses to a smooth path first (fastenerf/pose_smoothing.py): odd number
+    of grid poses per local quadratic fit; removes pose-to-pose jitter, not a shared error."""
     refine_poses: bool = False
     """Learn a correction of every training pose (window grid) with the field (own Adam)."""
     refine_translation: bool = False
@@ -420,24 +423,13 @@ class TrainConfig:
     def validate(self, where: str = "train config") -> TrainConfig:
         """Check every value's type-free range; raise a one-line InputError naming the key."""
         check_ranges(self, where)
-        _check(
-            DEVICE_PATTERN.match(str(self.device)) is not None,
-            where,
-            "device",
-            f"must be auto, cpu, cuda or cuda:N, got {self.device!r}",
-        )
-        _check(
-            self.win_max is None or self.win_max >= self.win_min,
-            where,
-            "win_max",
-            f"must be >= win_min ({self.win_min}), got {self.win_max}",
-        )
-        _check(
-            self.rays_per_step is None or self.rays_per_step >= self.windows_per_step,
-            where,
-            "rays_per_step",
-            f"must be at least windows_per_step ({self.windows_per_step})",
-        )
+        ok, dev = DEVICE_PATTERN.match(str(self.device)) is not None, self.device
+        _check(ok, where, "device", f"must be auto, cpu, cuda or cuda:N, got {dev!r}")
+        ok, lo = self.win_max is None or self.win_max >= self.win_min, self.win_min
+        _check(ok, where, "win_max", f"must be >= win_min ({lo}), got {self.win_max}")
+        rays, wins = self.rays_per_step, self.windows_per_step
+        ok = rays is None or rays >= wins
+        _check(ok, where, "rays_per_step", f"must be at least windows_per_step ({wins})")
         self._validate_self_calibration(where)
         if self.adam_betas is not None:
             _check(
@@ -456,9 +448,11 @@ class TrainConfig:
         for key in ("refine_c2f_start", "refine_c2f_end", "refine_start", "refine_warmup"):
             v = getattr(self, key)
             _check(0 <= v <= 1, where, key, f"must be a budget fraction in [0, 1], got {v}")
-        gauges, w = ("mean", "first", "none"), self.threshold_pixel_weight
-        _check(self.refine_gauge in gauges, where, "refine_gauge", f"must be one of {gauges}")
+        w, n = self.threshold_pixel_weight, self.smooth_poses
+        ok = n == 0 or (n >= 5 and n % 2 == 1)
+        _check(ok, where, "smooth_poses", f"must be 0 (off) or odd and >= 5, got {n}")
         for key, allowed in (
+            ("refine_gauge", ("mean", "first", "none")),
             ("refine_c2f_mode", ("field", "gradient")),
             ("refine_optimizer", ("adam", "row-adam")),
         ):

@@ -34,6 +34,7 @@ from .losses import total_loss
 from .memory import check_ray_batch
 from .optim import make_adam
 from .perturb import perturb_training_data
+from .pose_smoothing import smoothed_rig
 from .run import (
     CHECKPOINT,
     load_checkpoint,
@@ -161,6 +162,7 @@ class Trainer:
             sc.loop,
             c.seed,
         )
+        self.smoothing = self._smooth_poses() if c.smooth_poses else None
         self.sampler = RaySampler(
             self.index,
             self.rig,
@@ -174,6 +176,17 @@ class Trainer:
             with_poses=c.refine_poses,
             with_parts=c.estimate_threshold,
         )
+
+    def _smooth_poses(self) -> dict:
+        """The motion prior (`pose_smoothing`) on the training rig; returns its report (with
+        the error before and after where a study knows the exact poses)."""
+        grid_t = self.windows.grid_times(np.arange(self.windows.n_views + 1))
+        p, exact = self.perturbation or {}, None
+        if p.get("pose") or p.get("mount"):
+            exact = self.scene.rig().pose(grid_t)
+        w = self.cfg.smooth_poses
+        self.rig, report = smoothed_rig(self.rig, grid_t, w, exact, where="train config")
+        return report
 
     def _observe_training_cameras(self) -> None:
         sc = self.scene.config
@@ -252,6 +265,7 @@ class Trainer:
             "event_targets": self.sampler.target_backend,
             "amp": "bf16" if self.amp else "off",
             "device": str(self.device),
+            "pose_smoothing": self.cfg.smooth_poses > 0,
             "pose_refinement": self.cfg.refine_poses,
             "threshold_estimation": self.cfg.estimate_threshold,
             **self.field.built(),
@@ -270,6 +284,7 @@ class Trainer:
                 "field": self.field.config_dict(),
                 "built": self.built(),
                 "perturbation": self.perturbation,
+                "pose_smoothing": self.smoothing,
                 "self_calibration": None if self.selfcal is None else self.selfcal.report(),
                 "versions": {"torch": torch.__version__, "fastenerf": __version__},
             },
