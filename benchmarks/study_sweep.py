@@ -8,7 +8,8 @@ writes OUT/sweep.md and OUT/sweep.json: per scene, option and level the PSNR, th
 mean rotation error and centre offset of the refined poses, the steps and train seconds (runs
 side by side: not a step time), with a study column when the sweeps hold more than one; and
 OUT/sweep.png: per scene, each option's PSNR at 1° against its PSNR at 0° (the trade-off:
-refinement must win at 1° without costing at 0°).
+refinement must win at 1° without costing at 0°); and OUT/sweep_levels.png: per scene, each
+option's PSNR against the level (a line where it ran several levels, a point where one).
 """
 
 from __future__ import annotations
@@ -124,6 +125,36 @@ def plot(rows: list[dict], path: Path) -> Path:
     return path
 
 
+def plot_levels(rows: list[dict], path: Path) -> Path:
+    """PSNR against level, one line (or point) per option, a panel per scene."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["scene"] for r in rows})
+    n = max(1, len(scenes))
+    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.8), squeeze=False)
+    mixed = _mixed(rows)
+    for ax, s in zip(axes[0], scenes, strict=False):
+        by: dict[str, dict[float, float]] = {}
+        for r in rows:
+            if r["scene"] == s and r["psnr"] is not None:
+                name = f"{r['name']} ({r['study']})" if mixed else r["name"]
+                by.setdefault(name, {})[r["level"]] = r["psnr"]
+        for name, v in sorted(by.items()):
+            lv = sorted(v)
+            ax.plot(lv, [v[x] for x in lv], "o-" if len(lv) > 1 else "s", ms=4, label=name)
+        ax.set(title=s, xlabel="level (°)", ylabel="PSNR (dB)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", help="the sweep's OUT folder (the table and plot go here)")
     p.add_argument("more", nargs="*", help="other sweeps' OUT folders to table beside it")
@@ -142,6 +173,7 @@ def run(args: argparse.Namespace) -> int:
     rows.sort(key=_order)
     try:
         plot(rows, out / "sweep.png")
+        plot_levels(rows, out / "sweep_levels.png")
         write_json(out / "sweep.json", jsonable({"runs": rows}))
         with atomic_path(out / "sweep.md") as tmp:
             tmp.write_text(markdown(rows))
