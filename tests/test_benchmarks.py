@@ -383,6 +383,7 @@ def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     md = (tmp_path / "a" / "sweep.md").read_text()
     assert "| blocks | new_one | 1° | 29.10 | 0.080 |" in md
     assert (tmp_path / "a" / "sweep.png").stat().st_size > 1000
+    assert (tmp_path / "a" / "sweep_levels.png").stat().st_size > 1000
     # bad input: one line, exit 2, and the tables already there stay as they are
     (tmp_path / "empty").mkdir()
     assert study_sweep.main([str(tmp_path / "empty")]) == 2
