@@ -88,23 +88,43 @@ def markdown(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plot(rows: list[dict], path: Path) -> Path:
-    """PSNR at 1° against PSNR at 0°, one point per option that ran both, a panel per scene."""
+def _psnr_by_option(rows: list[dict], scene: str) -> dict[str, dict[float, float]]:
+    """{option name (with its study when the rows mix studies): {level: PSNR}} of one scene."""
+    mixed, by = _mixed(rows), {}
+    for r in rows:
+        if r["scene"] == scene and r["psnr"] is not None:
+            name = f"{r['name']} ({r['study']})" if mixed else r["name"]
+            by.setdefault(name, {})[r["level"]] = r["psnr"]
+    return by
+
+
+def _panels(n: int, width: float, height: float):
+    """A figure of n panels side by side (at least one): (fig, list of axes)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    fig, axes = plt.subplots(1, max(1, n), figsize=(width * max(1, n), height), squeeze=False)
+    return fig, list(axes[0])
+
+
+def _save(fig, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return path
+
+
+def plot(rows: list[dict], path: Path) -> Path:
+    """PSNR at 1° against PSNR at 0°, one point per option that ran both, a panel per scene."""
     scenes = sorted({r["scene"] for r in rows})
-    fig, axes = plt.subplots(1, max(1, len(scenes)), figsize=(5.5 * max(1, len(scenes)), 4.6))
-    axes = [axes] if len(scenes) <= 1 else list(axes)
-    mixed = _mixed(rows)
+    fig, axes = _panels(len(scenes), 5.5, 4.6)
     for ax, s in zip(axes, scenes, strict=False):
-        by = {}
-        for r in rows:
-            if r["scene"] == s and r["psnr"] is not None:
-                name = f"{r['name']} ({r['study']})" if mixed else r["name"]
-                by.setdefault(name, {})[r["level"]] = r["psnr"]
+        by = _psnr_by_option(rows, s)
         pts = [(n, v[0.0], v[1.0]) for n, v in sorted(by.items()) if 0.0 in v and 1.0 in v]
         for n, x, y in pts:
             ax.scatter(x, y, s=18)
@@ -118,41 +138,21 @@ def plot(rows: list[dict], path: Path) -> Path:
                 ax.axvline(v[0.0], color="grey", lw=0.8, label=f"{n} at 0°")
         ax.set(title=s, xlabel="PSNR at 0° (dB)", ylabel="PSNR at 1° (dB)")
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_levels(rows: list[dict], path: Path) -> Path:
     """PSNR against level, one line (or point) per option, a panel per scene."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     scenes = sorted({r["scene"] for r in rows})
-    n = max(1, len(scenes))
-    fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.8), squeeze=False)
-    mixed = _mixed(rows)
-    for ax, s in zip(axes[0], scenes, strict=False):
-        by: dict[str, dict[float, float]] = {}
-        for r in rows:
-            if r["scene"] == s and r["psnr"] is not None:
-                name = f"{r['name']} ({r['study']})" if mixed else r["name"]
-                by.setdefault(name, {})[r["level"]] = r["psnr"]
-        for name, v in sorted(by.items()):
+    fig, axes = _panels(len(scenes), 4.2, 3.8)
+    for ax, s in zip(axes, scenes, strict=False):
+        for name, v in sorted(_psnr_by_option(rows, s).items()):
             lv = sorted(v)
             ax.plot(lv, [v[x] for x in lv], "o-" if len(lv) > 1 else "s", ms=4, label=name)
         ax.set(title=s, xlabel="level (°)", ylabel="PSNR (dB)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
