@@ -37,12 +37,41 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ts", default="-0.5,-0.25,0,0.25,0.5,0.75,1,1.25", help="points on the line")
 
 
-def run(args: argparse.Namespace) -> int:
+def _points(text: str) -> list[float]:
+    """--ts as finite floats (one-line InputError otherwise)."""
+    try:
+        ts = [float(s) for s in text.split(",")]
+    except ValueError:
+        raise InputError(f"--ts must be comma-separated numbers, got {text!r}") from None
+    if not ts or not all(math.isfinite(t) for t in ts):
+        raise InputError(f"--ts must be finite numbers, got {text!r}")
+    return ts
+
+
+def _checked(args: argparse.Namespace) -> tuple[Path, dict, dict, list[float]]:
+    """The run folder, its config.json, its mount report and the points, or a one-line
+    InputError saying what is wrong and where."""
     src = Path(args.run)
-    cfg_json = json.loads((src / "config.json").read_text())
+    if args.batches < 1:
+        raise InputError(f"--batches must be at least 1, got {args.batches}")
+    ts = _points(args.ts)
+    for need in (src / "config.json", src / "checkpoint.pt"):
+        if not need.is_file():
+            raise InputError(f"{src}: no {need.name} (a finished mount-error study run?)")
+    if args.field_from and not (Path(args.field_from) / "checkpoint.pt").is_file():
+        raise InputError(f"{args.field_from}: no checkpoint.pt (--field-from wants a run)")
+    try:
+        cfg_json = json.loads((src / "config.json").read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise InputError(f"{src / 'config.json'}: not readable JSON ({e})") from None
     mount = (cfg_json.get("perturbation") or {}).get("mount")
-    if not mount or not (cfg_json["train"].get("refine_shared")):
+    if not mount or not (cfg_json.get("train") or {}).get("refine_shared"):
         raise InputError(f"{src} is not a refine_shared run of a mount-error study")
+    return src, cfg_json, mount, ts
+
+
+def run(args: argparse.Namespace) -> int:
+    src, cfg_json, mount, ts = _checked(args)
     with tempfile.TemporaryDirectory() as tmp:
         shutil.copytree(src, tmp, dirs_exist_ok=True)
         cfg = TrainConfig.from_dict(cfg_json["train"])
@@ -63,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             f"row {[round(math.degrees(v), 3) for v in row[0, :3].tolist()]} deg, "
             f"truth {[round(math.degrees(v), 3) for v in truth[0, :3].tolist()]} deg"
         )
-        for t in (float(s) for s in args.ts.split(",")):
+        for t in ts:
             with torch.no_grad():
                 tr.selfcal.poses.delta.copy_(row + t * (truth - row))
                 loss = sum(float(tr._forward(b)[1].detach()) for b in batches) / len(batches)

@@ -352,6 +352,41 @@ def test_mount_gauge_finds_the_turns_a_rigid_motion_imitates(tiny_scene, tmp_pat
         assert "mount_gauge: error: mount_gauge" not in err
 
 
+def test_mount_landscape_walks_the_line_without_writing_the_run(tiny_scene, tmp_path, capsys):
+    """`python -m benchmarks.mount_landscape`: the loss at each point of the line from a shared
+    row to the truth, the run folder untouched; bad input is one line and exit code 2."""
+    from benchmarks import mount_landscape
+    from fastenerf.cli import main
+
+    study = tmp_path / "study"
+    argv = ["bench", "study", "mount-error", str(tiny_scene), "--levels", "2", "--steps", "3",
+            "--device", "cpu", "--quiet", "--eval-views", "1", "--out", str(study),
+            "--set", "refine_poses=true", "refine_shared=true", "rays_per_step=32"]  # fmt: skip
+    assert main(argv) == 0
+    run = study / "runs" / "mount-2deg"
+    before = {p.name: p.stat().st_mtime_ns for p in run.iterdir()}
+    capsys.readouterr()
+    args = [str(run), "--scene", str(tiny_scene), "--batches", "2"]
+    assert mount_landscape.main(args + ["--ts", "0,1"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    losses = [float(line.split("loss=")[1]) for line in out if line.startswith("t=")]
+    assert len(losses) == 2 and all(math.isfinite(v) and v > 0 for v in losses)
+    assert "truth [" in out[0]
+    assert {p.name: p.stat().st_mtime_ns for p in run.iterdir()} == before
+    bad_args = (
+        ["--ts", "0,x"],
+        ["--ts", "nan"],
+        ["--batches", "0"],
+        ["--field-from", str(tmp_path / "missing")],
+    )
+    for bad in bad_args:
+        assert mount_landscape.main(args + bad) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("mount_landscape: error:") and len(err.splitlines()) == 1, err
+    assert mount_landscape.main([str(tmp_path), "--scene", str(tiny_scene)]) == 2
+    assert "no config.json" in capsys.readouterr().err
+
+
 def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     """benchmarks.study_sweep reads one pose-error.json (or mount-error.json: a pose study) per
     (scene, option, level) folder of every sweep given, tables them (names prefixed by the
