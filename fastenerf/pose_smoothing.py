@@ -24,6 +24,7 @@ import numpy as np
 
 from .data.rig import Rig, TimedPoses
 from .errors import InputError
+from .perturb import rotation_angles_deg
 
 MIN_WINDOW = 5
 LOOP_TOL = 1e-6  # a grid's first and last poses this close (entries): one view, a loop
@@ -93,8 +94,6 @@ def smoothed_rig(
     and a report: the window, whether it wrapped, the mean and largest turn the smoothing gave
     a pose, and with exact_c2w the mean rotation error before and after (degrees).
     """
-    from .perturb import rotation_angles_deg
-
     t = np.asarray(grid_t, dtype=np.int64)
     given = rig.pose(t)
     loop = rig.loop_period_us is not None and np.allclose(given[0], given[-1], atol=LOOP_TOL)

@@ -177,15 +177,22 @@ class Trainer:
             with_parts=c.estimate_threshold,
         )
 
+    def _grid_times(self) -> np.ndarray:
+        """The training pose grid, (n_views + 1,) int64 µs."""
+        return self.windows.grid_times(np.arange(self.windows.n_views + 1))
+
+    def _exact_grid_poses(self) -> np.ndarray | None:
+        """(G, 4, 4) float64 unperturbed grid poses where a study turned them, else None."""
+        p = self.perturbation or {}
+        if not (p.get("pose") or p.get("mount")):
+            return None
+        return self.scene.rig().pose(self._grid_times())
+
     def _smooth_poses(self) -> dict:
         """The motion prior (`pose_smoothing`) on the training rig; returns its report (with
         the error before and after where a study knows the exact poses)."""
-        grid_t = self.windows.grid_times(np.arange(self.windows.n_views + 1))
-        p, exact = self.perturbation or {}, None
-        if p.get("pose") or p.get("mount"):
-            exact = self.scene.rig().pose(grid_t)
-        w = self.cfg.smooth_poses
-        self.rig, report = smoothed_rig(self.rig, grid_t, w, exact, where="train config")
+        w, exact = self.cfg.smooth_poses, self._exact_grid_poses()
+        self.rig, report = smoothed_rig(self.rig, self._grid_times(), w, exact, "train config")
         return report
 
     def _observe_training_cameras(self) -> None:
@@ -237,11 +244,9 @@ class Trainer:
     def _make_self_calibration(self) -> SelfCalibration | None:
         if not SelfCalibration.wanted(self.cfg):
             return None
-        sc, true_c2w = self.scene.config, None
-        p = self.perturbation or {}
-        if p.get("pose") or p.get("mount"):  # a study knows the truth
-            grid_t = self.windows.grid_times(np.arange(self.windows.n_views + 1))
-            true_c2w = torch.as_tensor(self.scene.rig().pose(grid_t), device=self.device)
+        sc, true_c2w = self.scene.config, self._exact_grid_poses()  # a study knows the truth
+        if true_c2w is not None:
+            true_c2w = torch.as_tensor(true_c2w, device=self.device)
         thresholds = (sc.pos_threshold, sc.neg_threshold)
         return SelfCalibration(self.cfg, self.sampler, thresholds, self.field, true_c2w)
 
