@@ -371,7 +371,9 @@ class TrainConfig:
     # Self-calibration (issue #20; fastenerf/self_calibration.py): both off by default.
     smooth_poses: int = field(default=0, metadata={"min": 0, "max": 1 << 20})
     """Fit the training poses to a smooth path first (fastenerf/pose_smoothing.py): odd number
-    of grid poses per local quadratic fit; removes pose-to-pose jitter, not a shared error."""
+    of grid poses per local fit; removes pose-to-pose jitter, not a shared error."""
+    smooth_order: int = field(default=2, metadata={"min": 1, "max": 2})
+    """Degree of that fit (1: exact for turns at a constant rate, e.g. a turntable's)."""
     refine_poses: bool = False
     """Learn a correction of every training pose (window grid) with the field (own Adam)."""
     refine_translation: bool = False

@@ -33,7 +33,7 @@ import torch
 from torch import nn
 
 from .render import generate_rays
-from .se3 import relative_angle_deg, so3_exp
+from .se3 import mean_world_rotation, relative_angle_deg, so3_exp
 
 GAUGES = ("mean", "first", "none")
 
@@ -175,9 +175,40 @@ class PoseRefiner(nn.Module):
         return seen.any(0, keepdim=True) if self.shared else seen
 
     @torch.no_grad()
+    def gauge_rotation(self) -> torch.Tensor | None:
+        """The world rotation W (3, 3) float64 the corrected poses share against the exact ones
+        (R' ≈ W · R_true about every centre, `se3.mean_world_rotation` over the used rows), or
+        None without exact poses: the frame the field was learnt in, which a study's test
+        views are turned into to be scored aligned (as BARF aligns before it scores)."""
+        if self.true_c2w is None:
+            return None
+        R = self.rotations().double()
+        return mean_world_rotation(R, self.true_c2w[:, :3, :3].double(), self.used.double())
+
+    @classmethod
+    def from_state(cls, state: dict, gauge: str) -> PoseRefiner:
+        """A refiner rebuilt from its `state_dict` (a checkpoint's) and the run's gauge
+        ("none" for a shared row), on the state's device."""
+        true = state.get("true_c2w")
+        mask = state["mask"]
+        out = cls(
+            state["base"],
+            state["used"],
+            gauge=gauge,
+            true_c2w=true,
+            translation=bool(mask[:, 3:].any()),
+            fused=False,
+            shared=state["delta"].shape[0] == 1 and len(state["base"]) > 1,
+        )
+        out.load_state_dict(state)
+        return out
+
+    @torch.no_grad()
     def stats(self) -> dict[str, float]:
         """Mean / max size of the corrections on the used rows (degrees, world units) and,
-        with true poses, the corrected poses' remaining rotation error and centre offset."""
+        with true poses, the corrected poses' remaining rotation error and centre offset, the
+        world rotation they share (`gauge_rotation`'s angle) and the error left once it is
+        taken out (pose_error_aligned_deg)."""
         # masked reductions over every row, not boolean indexing: one host read, at the end
         d, used = self.corrections().double(), self.used
         n = used.sum()
@@ -202,6 +233,11 @@ class PoseRefiner(nn.Module):
             vals["pose_error_deg"] = mean(err)
             vals["pose_error_max_deg"] = vmax(err)
             vals["pose_centre_error"] = mean((centre - true[:, :3, 3]).norm(dim=-1))
+            W = mean_world_rotation(R, true[:, :3, :3], used.double())
+            vals["pose_gauge_deg"] = relative_angle_deg(
+                W, torch.eye(3, dtype=W.dtype, device=W.device)
+            )
+            vals["pose_error_aligned_deg"] = mean(relative_angle_deg(R, W @ true[:, :3, :3]))
         keys = list(vals)
         return dict(zip(keys, torch.stack([vals[k] for k in keys]).tolist(), strict=True))
 

@@ -53,3 +53,19 @@ def rotation_angle(R: torch.Tensor) -> torch.Tensor:
 def relative_angle_deg(R_a: torch.Tensor, R_b: torch.Tensor) -> torch.Tensor:
     """Geodesic angle between rotations R_a, R_b (..., 3, 3), degrees (...)."""
     return rotation_angle(R_a.transpose(-1, -2) @ R_b) * (180.0 / math.pi)
+
+
+def mean_world_rotation(R_a: torch.Tensor, R_b: torch.Tensor, weights: torch.Tensor | None = None):
+    """The rotation W (3, 3) that best turns R_b (N, 3, 3) into R_a in the world frame,
+    R_a ≈ W · R_b: argmin Σ w_i ‖W R_b,i − R_a,i‖² (Procrustes, the polar factor of
+    Σ w_i R_a,i R_b,iᵀ by SVD); weights: optional (N,) >= 0, not all 0. Same dtype as R_a.
+
+    Why: the rotation every camera shares about its own centre is the gauge a pose
+    refinement cannot see (its mean correction is held at zero), so a study aligns by it.
+    """
+    w = torch.ones(R_a.shape[0], dtype=R_a.dtype, device=R_a.device) if weights is None else weights
+    M = torch.einsum("n,nij,nkj->ik", w.to(R_a.dtype), R_a, R_b.to(R_a.dtype))
+    U, _, Vh = torch.linalg.svd(M)
+    d = torch.sign(torch.linalg.det(U @ Vh))
+    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
+    return U @ D @ Vh

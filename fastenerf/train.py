@@ -191,8 +191,8 @@ class Trainer:
     def _smooth_poses(self) -> dict:
         """The motion prior (`pose_smoothing`) on the training rig; returns its report (with
         the error before and after where a study knows the exact poses)."""
-        w, exact = self.cfg.smooth_poses, self._exact_grid_poses()
-        self.rig, report = smoothed_rig(self.rig, self._grid_times(), w, exact, "train config")
+        c, exact, t = self.cfg, self._exact_grid_poses(), self._grid_times()
+        self.rig, report = smoothed_rig(self.rig, t, c.smooth_poses, exact, c.smooth_order)
         return report
 
     def _observe_training_cameras(self) -> None:

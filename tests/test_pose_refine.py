@@ -288,3 +288,70 @@ def test_shared_row_recovers_a_mount_error(ball):  # noqa: F811
         cfg, TrainConfig(refine_gauge="none", **knobs), events, bad_rig, 60, true_c2w
     )
     assert per_pose.stats()["pose_error_max_deg"] > 2 * st["pose_error_max_deg"], st
+
+
+def _grid_poses(n: int, seed: int = 0) -> torch.Tensor:
+    """(n + 1, 4, 4) float64 camera-to-world poses on an orbit (a loop: last = first)."""
+    from scipy.spatial.transform import Rotation
+
+    a = np.linspace(0.0, 360.0, n + 1)
+    R = Rotation.from_euler("zx", np.stack([a, np.full(n + 1, -110.0)], 1), degrees=True)
+    c2w = np.tile(np.eye(4), (n + 1, 1, 1))
+    c2w[:, :3, :3] = R.as_matrix()
+    c2w[:, :3, 3] = 4.0 * np.stack([np.sin(np.radians(a)), -np.cos(np.radians(a)), 0 * a], 1)
+    return torch.from_numpy(c2w)
+
+
+def test_mean_world_rotation_is_the_shared_turn_not_the_jitter():
+    """R_a = W · R_b · (own small turn): Procrustes gives W back to well under the jitter
+    (which averages out), ignores rows of weight 0, and is a proper rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from fastenerf.se3 import mean_world_rotation, relative_angle_deg
+
+    gen = np.random.default_rng(3)
+    R_b = torch.from_numpy(Rotation.random(400, random_state=4).as_matrix())
+    W = torch.from_numpy(Rotation.from_rotvec([0.01, -0.02, 0.005]).as_matrix())
+    jitter = torch.from_numpy(Rotation.from_rotvec(gen.normal(0, 0.01, (400, 3))).as_matrix())
+    R_a = W @ R_b @ jitter
+    R_a[:10] = torch.from_numpy(Rotation.random(10, random_state=5).as_matrix())  # outliers
+    w = torch.ones(400, dtype=torch.float64)
+    w[:10] = 0
+    est = mean_world_rotation(R_a, R_b, w)
+    assert float(relative_angle_deg(est, W)) < 0.1  # the jitter is 0.57° per axis
+    assert float(relative_angle_deg(mean_world_rotation(R_a, R_b), W)) > 0.1  # outliers in
+    assert torch.allclose(est @ est.T, torch.eye(3, dtype=est.dtype), atol=1e-12)
+    assert float(torch.linalg.det(est)) == pytest.approx(1.0)
+
+
+def test_refiner_reports_the_shared_turn_and_the_error_without_it():
+    """Poses given as W · truth (one world turn about every centre) and not corrected: the
+    error is all shared (pose_gauge_deg = the turn, nothing left aligned); a per-pose error
+    on top is what is left aligned. A refiner rebuilt from its state gives the same."""
+    from scipy.spatial.transform import Rotation
+
+    from fastenerf.pose_refine import PoseRefiner
+
+    true = _grid_poses(60)
+    used = torch.tensor([True] * 60 + [False])
+    W = torch.from_numpy(Rotation.from_rotvec(np.radians([0.3, 0.0, -0.4])).as_matrix())
+    given = true.clone()
+    given[:, :3, :3] = W @ true[:, :3, :3]
+    st = PoseRefiner(given, used, "mean", true_c2w=true).stats()
+    assert st["pose_error_deg"] == pytest.approx(0.5, abs=1e-4)
+    assert st["pose_gauge_deg"] == pytest.approx(0.5, abs=1e-4)
+    assert st["pose_error_aligned_deg"] < 1e-4
+    jit = torch.from_numpy(
+        Rotation.from_rotvec(np.radians(np.tile([0.2, 0, 0], (61, 1)))).as_matrix()
+    )
+    jit[::2] = jit[::2].transpose(-1, -2)  # ±0.2° about the camera x axis, alternating
+    given[:, :3, :3] = given[:, :3, :3] @ jit
+    pr = PoseRefiner(given, used, "mean", true_c2w=true)
+    with torch.no_grad():
+        pr.delta.copy_(torch.randn(61, 6) * 1e-3)
+    st = pr.stats()
+    assert st["pose_error_aligned_deg"] < st["pose_error_deg"]
+    back = PoseRefiner.from_state(pr.state_dict(), "mean")
+    assert torch.equal(back.corrections(), pr.corrections())
+    assert torch.equal(back.gauge_rotation(), pr.gauge_rotation())
+    assert PoseRefiner(given, used, "mean").gauge_rotation() is None  # no truth, no gauge

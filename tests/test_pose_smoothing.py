@@ -41,12 +41,13 @@ def wobbly_timed(n=300):
 
 
 def test_a_turntable_orbit_comes_out_exact(scene_config):
-    """A tilted turntable turns about one fixed axis: averaging only scales the turn's in-plane
-    entries and the projection undoes it, for any window."""
+    """A tilted turntable turns about one fixed axis at a constant rate: the logs about a pose
+    are linear along the grid, so the fit is exact for any window (three quarters of the loop
+    too) and either order."""
     _, rig, grid_t = orbit_rig(scene_config)
     c2w = rig.pose(grid_t)
-    for window in (5, 51, 201):
-        out = smooth_poses(c2w, window, loop=True)
+    for window, order in ((5, 2), (51, 2), (201, 2), (51, 1), (301, 1), (301, 2)):
+        out = smooth_poses(c2w, window, loop=True, order=order)
         assert angles(c2w, out).max() < 1e-6
         assert np.array_equal(out[:, :3, 3], c2w[:, :3, 3])  # centres stay as given
         assert np.array_equal(out[-1, :3, :3], out[0, :3, :3])
@@ -74,6 +75,11 @@ def test_jitter_is_removed(scene_config, deg):
     R = out[:, :3, :3]
     assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-12)
     assert np.all(np.linalg.det(R) > 0)
+    # on a constant-rate turn the straight-line fit averages the jitter with less left, and a
+    # long window leaves less again (entries fitted instead would amplify it there)
+    first = angles(exact, smooth_poses(given, 101, loop=True, order=1)).mean()
+    assert first < 0.85 * after
+    assert angles(exact, smooth_poses(given, 301, loop=True, order=1)).mean() < 0.75 * first
 
 
 def test_a_shared_mount_turn_stays(scene_config):
@@ -128,6 +134,15 @@ def test_bad_windows_are_refused(window):
             TrainConfig(smooth_poses=window).validate()
 
 
+def test_bad_orders_are_refused():
+    _, c2w = wobbly_timed(60)
+    for order in (0, 3):
+        with pytest.raises(InputError, match="order must be 1 or 2"):
+            smooth_poses(c2w, 7, loop=False, order=order)
+        with pytest.raises(InputError, match="smooth_order"):
+            TrainConfig(smooth_order=order).validate()
+
+
 def test_the_trainer_smooths_and_records(tiny_scene, tmp_path):
     """A pose study's run with the prior: the sampler's grid poses are the smoothed ones, and
     config.json says how far they were from the truth before and after."""
@@ -150,7 +165,7 @@ def test_the_trainer_smooths_and_records(tiny_scene, tmp_path):
     tr.write_config()
     conf = json.loads((tmp_path / "run" / "config.json").read_text())
     sm = conf["pose_smoothing"]
-    assert conf["built"]["pose_smoothing"] and sm["window"] == 21
+    assert conf["built"]["pose_smoothing"] and sm["window"] == 21 and sm["order"] == 2
     assert sm["error_before_deg"] == pytest.approx(2.0, rel=1e-3)
     assert sm["error_after_deg"] < 0.6 * sm["error_before_deg"]
     with pytest.raises(InputError, match="smooth_poses 201 is longer"):
