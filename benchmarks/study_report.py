@@ -25,7 +25,6 @@ from fastenerf.run import CHECKPOINT, read_progress
 
 EVAL_RECORD = "study_eval.json"  # in a level's run folder: its final evaluation
 VIEW_TILE = "study_view.png"  # and the grid's view of it (colour-corrected render)
-SCORING = 2  # a record scored by an older rule (2: with the aligned score) is scored again
 KNOBS = ("win_min", "win_max", "win_redraw", "neg_ratio", "distortion_weight")
 
 
@@ -41,7 +40,6 @@ def final_eval(run_dir: Path, ev: EvalSet, grid_view: int, device) -> dict[str, 
 
     progress = read_progress(run_dir)
     key = {
-        "scoring": SCORING,
         "step": progress.get("step"),
         "views": [int(v) for v in ev.views],
         "scale": ev.scale,
@@ -56,32 +54,11 @@ def final_eval(run_dir: Path, ev: EvalSet, grid_view: int, device) -> dict[str, 
     field = field_from_checkpoint(ck, run_dir / CHECKPOINT).to(device).eval()
     chunk = int(ck.get("train_config", {}).get("chunk", 16384) or 16384)
     metrics, corrected = evaluate_field(field, ev, chunk)
-    W = gauge_rotation(ck)
-    if W is not None:  # refined poses with the truth known: scored in their frame too
-        turned, _ = evaluate_field(field, ev.turned(W), chunk)
-        angle = float(np.degrees(np.arccos(np.clip((np.trace(W) - 1) / 2, -1.0, 1.0))))
-        metrics["aligned"] = {"psnr": turned["psnr"], "ssim": turned["ssim"], "gauge_deg": angle}
     del field, ck
     write_image(run_dir / VIEW_TILE, corrected[grid_view])
     record = {**key, **metrics, "train_s": progress.get("train_seconds"), "tile": VIEW_TILE}
     write_json(path, jsonable(record))
     return record
-
-
-def gauge_rotation(ck: dict) -> np.ndarray | None:
-    """The world rotation (3, 3) float64 a checkpoint's refined poses share against the exact
-    ones (`PoseRefiner.gauge_rotation`), or None: no refinement, or no exact poses (not a
-    study). The refinement holds its mean correction at zero, so this part of a study's pose
-    error stays; a field learnt in that frame is scored aligned to it too (BARF aligns)."""
-    from fastenerf.pose_refine import PoseRefiner
-
-    state = (ck.get("self_calibration") or {}).get("poses")
-    if not state or state.get("true_c2w") is None:
-        return None
-    cfg = ck.get("train_config") or {}
-    gauge = "none" if cfg.get("refine_shared") else cfg.get("refine_gauge", "mean")
-    W = PoseRefiner.from_state({k: v.cpu() for k, v in state.items()}, gauge).gauge_rotation()
-    return W.numpy()
 
 
 def _read_json(path: Path) -> dict | None:
@@ -151,7 +128,6 @@ def level_row(
         "psnr": src.get("psnr", float("nan")),
         "ssim": src.get("ssim", float("nan")),
         "psnr_reloaded": (fe or {}).get("psnr"),  # the last checkpoint scored again
-        "aligned": (fe or {}).get("aligned"),  # refined poses: scored in their shared frame
         "steps": int(progress.get("step", 0) or 0),
         "train_s": progress.get("train_seconds"),
         "perturbation": conf.get("perturbation"),
@@ -336,10 +312,7 @@ def _table(result: dict) -> list[str]:
         head = "| variant | win_min..win_max (views) | neg_ratio | distortion_weight |"
     elif study in POSE_STUDIES:
         what = study.replace("-", " ")
-        head = (
-            f"| {what} | measured mean / max (°) | after refinement mean / max (°) | "
-            "shared turn (°) | aligned PSNR |"
-        )
+        head = f"| {what} | measured mean / max (°) | after refinement mean / max (°) |"
     else:
         head = "| noise | measured added fraction (events) |"
     n_first = head.count("|") - 1
@@ -372,10 +345,8 @@ def _first_cells(study: str, r: dict) -> str:
             f"{_f(k['distortion_weight'], 'g')} |"
         )
     if study in POSE_STUDIES:
-        al = r.get("aligned") or {}
         return (
             f"| {name} | {_f(m['mean_deg'], '.4g')} / {_f(m['max_deg'], '.4g')} | {_pose_left(r)} |"
-            f" {_f(al.get('gauge_deg'), '.3f')} | {_f(al.get('psnr'), '.2f')} |"
         )
     return f"| {name} | {100 * m['fraction']:.3f} % ({m['added_events']:,}) |"
 

@@ -51,8 +51,7 @@ def _row(m: re.Match, option: str, name: str, study: dict, lv: dict) -> dict:
         "study": name,
         "level": float(lv["level"]),
         "psnr": lv.get("psnr"),
-        "psnr_aligned": (lv.get("aligned") or {}).get("psnr"),
-        "gauge_deg": (lv.get("aligned") or {}).get("gauge_deg"),
+        "gauge_deg": stats.get("pose_gauge_deg"),
         "pose_error_deg": stats.get("pose_error_deg"),
         "pose_centre_error": stats.get("pose_centre_error"),
         "steps": lv.get("steps"),
@@ -77,14 +76,14 @@ def markdown(rows: list[dict]) -> str:
     mixed = _mixed(rows)
     lines = [
         "| scene | option |" + (" study |" if mixed else "") + " level | PSNR (dB) | "
-        "aligned PSNR | pose error (°) | shared turn (°) | centre offset | steps | train s |",
-        "|---|---|" + ("---|" if mixed else "") + "---:|---:|---:|---:|---:|---:|---:|---:|",
+        "pose error (°) | shared turn (°) | centre offset | steps | train s |",
+        "|---|---|" + ("---|" if mixed else "") + "---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         study = f" {r['study']} |" if mixed else ""
         lines.append(
             f"| {r['scene']} | {r['name']} |{study} {r['level']:g}° | {f(r['psnr'], '.2f')} | "
-            f"{f(r['psnr_aligned'], '.2f')} | {f(r['pose_error_deg'], '.3f')} | "
+            f"{f(r['pose_error_deg'], '.3f')} | "
             f"{f(r['gauge_deg'], '.3f')} | {f(r['pose_centre_error'], '.4f')} | "
             f"{f(r['steps'], 'd')} | {f(r['train_s'], '.0f')} |"
         )

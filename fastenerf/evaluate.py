@@ -178,14 +178,6 @@ class EvalSet:
         """The first `k` views (a warm-up render, say)."""
         return dataclasses.replace(self, views=self.views[:k], c2w=self.c2w[:k], gt=self.gt[:k])
 
-    def turned(self, W: np.ndarray) -> EvalSet:
-        """The same views, every camera turned by the world rotation W (3, 3) about its own
-        centre (R → W · R): the test views in the frame of a field learnt from poses that
-        share W (a pose study scored aligned)."""
-        c2w = self.c2w.copy()
-        c2w[:, :3, :3] = np.asarray(W, dtype=np.float64) @ c2w[:, :3, :3]
-        return dataclasses.replace(self, c2w=c2w)
-
 
 def make_eval_set(scene: Scene, max_views: int | None = None, scale: float = 1.0) -> EvalSet:
     """The evaluation set of a loaded scene: views by `eval_view_indices`, at `scale`."""

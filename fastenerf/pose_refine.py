@@ -175,35 +175,6 @@ class PoseRefiner(nn.Module):
         return seen.any(0, keepdim=True) if self.shared else seen
 
     @torch.no_grad()
-    def gauge_rotation(self) -> torch.Tensor | None:
-        """The world rotation W (3, 3) float64 the corrected poses share against the exact ones
-        (R' ≈ W · R_true about every centre, `se3.mean_world_rotation` over the used rows), or
-        None without exact poses: the frame the field was learnt in, which a study's test
-        views are turned into to be scored aligned (as BARF aligns before it scores)."""
-        if self.true_c2w is None:
-            return None
-        R = self.rotations().double()
-        return mean_world_rotation(R, self.true_c2w[:, :3, :3].double(), self.used.double())
-
-    @classmethod
-    def from_state(cls, state: dict, gauge: str) -> PoseRefiner:
-        """A refiner rebuilt from its `state_dict` (a checkpoint's) and the run's gauge
-        ("none" for a shared row), on the state's device."""
-        true = state.get("true_c2w")
-        mask = state["mask"]
-        out = cls(
-            state["base"],
-            state["used"],
-            gauge=gauge,
-            true_c2w=true,
-            translation=bool(mask[:, 3:].any()),
-            fused=False,
-            shared=state["delta"].shape[0] == 1 and len(state["base"]) > 1,
-        )
-        out.load_state_dict(state)
-        return out
-
-    @torch.no_grad()
     def stats(self) -> dict[str, float]:
         """Mean / max size of the corrections on the used rows (degrees, world units) and,
         with true poses, the corrected poses' remaining rotation error and centre offset, the

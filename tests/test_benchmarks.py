@@ -394,17 +394,19 @@ def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     against 0°."""
     from benchmarks import study_sweep
 
-    def run(folder, name, level, psnr, err=None, study="pose-error", aligned=None):
+    def run(folder, name, level, psnr, err=None, study="pose-error", shared=None):
         d = tmp_path / folder / f"sweep_blocks_{name}_L{level:g}"
         d.mkdir(parents=True, exist_ok=True)
         stats = {} if err is None else {"pose_error_deg": err, "pose_centre_error": 0.0}
-        lv = {"level": level, "psnr": psnr, "steps": 30, "train_s": 1.0, "aligned": aligned,
+        if shared is not None:
+            stats["pose_gauge_deg"] = shared
+        lv = {"level": level, "psnr": psnr, "steps": 30, "train_s": 1.0,
               "self_calibration": {"stats": stats} if stats else None}  # fmt: skip
         (d / f"{study}.json").write_text(json.dumps({"levels": [lv], "git_commits": ["abc"]}))
 
     run("a", "plain", 0, 30.0)
     run("a", "new_one", 0, 29.9)
-    run("a", "new_one", 1, 29.1, 0.08, aligned={"psnr": 29.6, "gauge_deg": 0.05})
+    run("a", "new_one", 1, 29.1, 0.08, shared=0.05)
     run("b", "old", 1, 25.0, 0.3)
     (tmp_path / "a" / "sweep_blocks_broken_L1").mkdir()  # no JSON: not a finished run
     assert study_sweep.main([str(tmp_path / "a"), str(tmp_path / "b")]) == 0
@@ -416,8 +418,8 @@ def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
         ("plain", 0.0, 30.0),
     ]
     md = (tmp_path / "a" / "sweep.md").read_text()
-    assert "| blocks | new_one | 1° | 29.10 | 29.60 | 0.080 | 0.050 |" in md
-    assert "| blocks | plain | 0° | 30.00 | — | — | — |" in md  # nothing refined: not aligned
+    assert "| blocks | new_one | 1° | 29.10 | 0.080 | 0.050 |" in md
+    assert "| blocks | plain | 0° | 30.00 | — | — |" in md  # nothing refined
     assert (tmp_path / "a" / "sweep.png").stat().st_size > 1000
     assert (tmp_path / "a" / "sweep_levels.png").stat().st_size > 1000
     # bad input: one line, exit 2, and the tables already there stay as they are
@@ -432,7 +434,7 @@ def test_study_sweep_tables_and_plots_runs_of_several_sweeps(tmp_path):
     run("m", "shared", 2, 27.5, 0.2, study="mount-error")
     assert study_sweep.main([str(tmp_path / "m")]) == 0
     assert (
-        "| blocks | shared | 2° | 27.50 | — | 0.200 |" in (tmp_path / "m" / "sweep.md").read_text()
+        "| blocks | shared | 2° | 27.50 | 0.200 | — |" in (tmp_path / "m" / "sweep.md").read_text()
     )
     run("m", "shared", 0, 29.0, study="pose-error")
     assert study_sweep.main([str(tmp_path / "m")]) == 0

@@ -72,25 +72,3 @@ def test_lpips_is_null_without_local_weights():
         assert note.startswith("LPIPS: weights not found at ")
     else:
         assert value == pytest.approx(0.0, abs=1e-6)
-
-
-def test_turned_eval_set_turns_each_camera_about_its_centre():
-    """EvalSet.turned(W): R → W · R for every view, centres, images and views as they were;
-    the identity gives the same poses."""
-    from scipy.spatial.transform import Rotation
-
-    from fastenerf.data.rig import Intrinsics
-    from fastenerf.evaluate import EvalSet
-
-    c2w = np.tile(np.eye(4), (3, 1, 1))
-    c2w[:, :3, :3] = Rotation.random(3, random_state=1).as_matrix()
-    c2w[:, :3, 3] = np.arange(9.0).reshape(3, 3)
-    intr = Intrinsics(fx=10.0, fy=10.0, cx=4.0, cy=3.0, width=8, height=6)
-    gt = np.zeros((3, 6, 8, 3), np.float32)
-    ev = EvalSet(np.arange(3), c2w, intr, gt, 0.1, None, 3, 1.0)
-    W = Rotation.from_rotvec([0.0, 0.01, 0.02]).as_matrix()
-    out = ev.turned(W)
-    assert np.allclose(out.c2w[:, :3, :3], W @ c2w[:, :3, :3])
-    assert np.array_equal(out.c2w[:, :3, 3], c2w[:, :3, 3]) and out.gt is gt
-    assert np.array_equal(ev.c2w, c2w)  # the set itself is left as it was
-    assert np.array_equal(ev.turned(np.eye(3)).c2w, c2w)
