@@ -520,6 +520,36 @@ def test_ngp_early_cone_marches_fewer_samples_until_early_steps(make):
     assert defaults.marcher.early_cone_angle == 1 / 64 and defaults.marcher.early_steps == 256
 
 
+def test_view_cone_is_a_floor_for_this_threads_inference_renders_only(make):
+    """`view_cone` (the viewer's speed setting): inference renders in this thread march with at
+    least that cone (fewer samples), training renders and other threads keep the field's own,
+    a smaller cone than the field's changes nothing, and leaving the block restores it."""
+    import threading
+
+    from fastenerf.fields.base import view_cone
+
+    f = make("ngp", cone_angle=0.0, early_cone_angle=None, dt_min=0.005)
+    o, d = hit_rays(16)
+
+    def samples(train: bool = False) -> int:
+        return int(f.render(o, d, near=1e-4, background=BG, train=train)["n_samples"])
+
+    own, trained = samples(), samples(True)
+    other = []
+    with view_cone(1 / 8):
+        fast = samples()
+        assert abs(samples(True) - trained) <= 0.05 * trained  # training: the field's own
+        t = threading.Thread(target=lambda: other.append(samples()))
+        t.start()
+        t.join()
+    assert fast < 0.6 * own, (fast, own)
+    assert other == [own] and samples() == own
+    g = make("ngp", cone_angle=1 / 8, early_cone_angle=None, dt_min=0.005)
+    with view_cone(1 / 256):  # a floor: a coarser field's own cone stays
+        n = int(g.render(o, d, near=1e-4, background=BG, train=False)["n_samples"])
+    assert n == int(g.render(o, d, near=1e-4, background=BG, train=False)["n_samples"])
+
+
 # ------------------------------------------------------------- ngp compacted samples (prune)
 
 

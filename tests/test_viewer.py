@@ -566,6 +566,9 @@ def test_bench_viewer_render_only_and_through_gl(tmp_path):
     f = SphereField(n_samples=8)
     res = bench_viewer(f, size=(40, 30), frames=2, warmup=1, chunk=300, gl=False)
     assert res["chunk"] == 300 and res["render_fps"] > 0 and "full_fps" not in res
+    assert res["view_cone_angle"] == 1 / 256  # the viewer's default floor
+    res = bench_viewer(f, size=(40, 30), frames=2, warmup=1, gl=False, cone_angle=None)
+    assert res["view_cone_angle"] is None
     _egl_or_skip().release()
     res = bench_viewer(f, size=(40, 30), frames=2, warmup=1)
     assert res["full_fps"] > 0 and res["upload_exact"], res

@@ -373,6 +373,9 @@ class Viewer:
                 "full scale", self.auto.max_scale, 0.1, 1.0, "%.2f"
             )
             self.auto.min_scale = min(self.auto.min_scale, self.auto.max_scale)
+            fast = self.settings.cone_angle is not None
+            _, fast = imgui.checkbox("fast marching (cone 1/256)", fast)
+            self.settings.cone_angle = 1.0 / 256 if fast else None
             imgui.text(f"render {self.render_s * 1e3:.1f} ms at scale {self.raw_scale:.2f}")
         if imgui.collapsing_header("Capture", imgui.TreeNodeFlags_.default_open):
             if imgui.button("Screenshot"):

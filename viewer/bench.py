@@ -37,11 +37,13 @@ def bench_viewer(
     mode: str = "rgb",
     chunk: int | None = None,
     gl: bool = True,
+    cone_angle: float | None | str = "default",
 ) -> dict:
     """Frames per second of the viewer at `size` (W, H) pixels; see the module docstring.
 
     chunk: rays per render call (default the viewer's, `ViewSettings.chunk`); gl: False skips
-    the display path (render-only numbers; the full_* and upload_* keys are then absent).
+    the display path (render-only numbers; the full_* and upload_* keys are then absent);
+    cone_angle: the view's cone floor (`ViewSettings.cone_angle`; "default": the viewer's).
     """
     from fastenerf.render import field_device
 
@@ -61,6 +63,8 @@ def bench_viewer(
     s = ViewSettings(mode=mode, near=src.near, background=src.background)
     if chunk is not None:
         s.chunk = int(chunk)
+    if cone_angle != "default":
+        s.cone_angle = cone_angle
     ctx = headless_context() if gl else None
     tex = FrameTexture(ctx) if gl else None
     off = Offscreen(ctx, size) if gl else None
@@ -87,6 +91,7 @@ def bench_viewer(
         "device": str(dev),
         "mode": mode,
         "chunk": s.chunk,
+        "view_cone_angle": s.cone_angle,
         "render_fps": frames / t_render,
         "render_ms": 1e3 * t_render / frames,
     }
@@ -181,6 +186,13 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--chunk", type=int, nargs="+", default=[None], help="rays per render call")
     p.add_argument("--no-gl", action="store_true", help="render path only (no EGL context)")
+    p.add_argument(
+        "--cone-angle",
+        type=float,
+        nargs="+",
+        default=["default"],
+        help="the view's cone angle floor(s) (ngp; 0: the field's own; default the viewer's)",
+    )
     p.add_argument("--out", help="also write the result(s) to this JSON file")
     a = p.parse_args(argv)
     from fastenerf.errors import FastenerfError
@@ -196,7 +208,11 @@ def run(a) -> None:
 
     size = tuple(int(v) for v in a.size.split("x"))
     if a.run:
-        res = [bench_viewer(a.run, size, a.frames, chunk=c, gl=not a.no_gl) for c in a.chunk]
+        res = [
+            bench_viewer(a.run, size, a.frames, chunk=c, gl=not a.no_gl, cone_angle=k)
+            for k in a.cone_angle
+            for c in a.chunk
+        ]
     else:
         res = [{"size": list(size), "device": a.device, **bench_upload(size, a.frames, a.device)}]
     res = [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()} for r in res]

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from fastenerf.data.rig import Intrinsics
+from fastenerf.fields.base import view_cone
 from fastenerf.render import field_device, render_image
 
 from .tonemap import Exposure, apply_exposure, depth_range, depth_to_rgb, gray_to_rgb, to_uint8
@@ -37,6 +38,9 @@ class ViewSettings:
     # rays per render call: on an H100 at 800x600 (trained ngp scene) 2^16 gave 35 fps, 2^18
     # 72 fps, 2^20 76 fps (render only; benchmarks/RESULTS.md): per-call overhead dominates
     chunk: int = 1 << 18
+    # at least this cone angle while rendering (ngp; None: the field's own): a run trained with
+    # cone 0 marches ~4x the samples of 1/256, instant-ngp's rendering default (RESULTS.md)
+    cone_angle: float | None = 1.0 / 256
 
 
 def render_raw(
@@ -54,7 +58,7 @@ def render_raw(
         if s.background is None
         else torch.tensor(s.background, dtype=torch.float32, device=dev)
     )
-    with lock or contextlib.nullcontext(), torch.no_grad():
+    with lock or contextlib.nullcontext(), torch.no_grad(), view_cone(s.cone_angle):
         if s.mode == "occupancy":
             return render_occupancy(f, c2w, intr, near=s.near, far=s.far, chunk=s.chunk)
         return render_image(

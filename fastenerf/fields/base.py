@@ -9,12 +9,35 @@ method of it on any field: the optional parts (`param_groups`, `observe_cameras`
 
 from __future__ import annotations
 
+import contextlib
+import threading
+from collections.abc import Iterator
 from typing import TypedDict
 
 import numpy as np
 import torch
 
 from ..errors import InputError
+
+_VIEW = threading.local()  # per thread: the viewer's render and a trainer's eval run side by side
+
+
+@contextlib.contextmanager
+def view_cone(cone_angle: float | None) -> Iterator[None]:
+    """In this thread, inference renders march with a cone angle of at least `cone_angle`
+    (ngp; the vanilla sampler has none): an interactive view's speed setting. Evaluation, the
+    trainer and other threads keep the field's own. None: the field's own."""
+    old = getattr(_VIEW, "cone", None)
+    _VIEW.cone = cone_angle
+    try:
+        yield
+    finally:
+        _VIEW.cone = old
+
+
+def view_cone_angle() -> float | None:
+    """The cone angle `view_cone` set in this thread, or None."""
+    return getattr(_VIEW, "cone", None)
 
 
 class RenderOutput(TypedDict, total=False):

@@ -34,7 +34,7 @@ from ..kernels.ray_points import ray_points
 from ..kernels.raymarch import march_rays
 from ..kernels.raymarch_fixed import FixedSamples, empty_fixed_samples, march_rays_fixed
 from ..kernels.sh import sh_encode
-from .base import Field, RenderOutput, check_points, park_non_finite
+from .base import Field, RenderOutput, check_points, park_non_finite, view_cone_angle
 from .capacity import SampleCapacity
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
@@ -304,6 +304,8 @@ class NGPField(Field):
         cone = opt.cone_angle
         if train and opt.early_cone_angle is not None and self.train_step < opt.early_steps:
             cone = opt.early_cone_angle
+        if not train and (view := view_cone_angle()) is not None:
+            cone = max(cone, view)
         jitter = torch.rand(len(rays_o), device=rays_o.device) if train else None
         march = dict(
             near=near,
