@@ -402,8 +402,9 @@ class TrainConfig:
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
     """adam: one Adam over every pose row (a row no batch sees still moves on its momentum);
     row-adam: lazy Adam, each row's moments and step only when a batch sees that row."""
-    refine_gauge: Literal["mean", "first", "none"] = "mean"
-    """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift)."""
+    refine_gauge: Literal["auto", "mean", "first", "none"] = "auto"
+    """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift);
+    auto: none for turns only (the given centres fix the frame), mean with refine_translation."""
     refine_shared: bool = False
     """One correction shared by every pose, c2w_i · R (a camera mis-mounted on its turntable)
     instead of one per pose; needs refine_poses; no gauge fix (refine_gauge is ignored)."""
@@ -454,7 +455,7 @@ class TrainConfig:
         ok = n == 0 or (n >= 5 and n % 2 == 1)
         _check(ok, where, "smooth_poses", f"must be 0 (off) or odd and >= 5, got {n}")
         for key, allowed in (
-            ("refine_gauge", ("mean", "first", "none")),
+            ("refine_gauge", ("auto", "mean", "first", "none")),
             ("refine_c2f_mode", ("field", "gradient")),
             ("refine_optimizer", ("adam", "row-adam")),
         ):

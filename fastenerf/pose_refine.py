@@ -15,7 +15,11 @@ motion of the whole scene is (to first order) the same δ for every row: "mean" 
 world-frame corrections zero-mean, which removes exactly that motion; "first" keeps the
 first row fixed instead (the scene keeps that camera's frame, errors included); "none"
 leaves the scene free to drift. Rows no window uses (a loop's last row, the twin of its
-first) keep a zero correction and are left out of the gauge.
+first) keep a zero correction and are left out of the gauge. That motion is a gauge only
+when the centres move too: learning turns alone, with the centres held at the given ones, a
+turn shared by every camera about its own centre is no rigid motion of the scene, and
+"mean" would keep the mean of the pose errors for good (`self_calibration.pose_gauge`:
+the default "auto" then takes "none").
 
 `shared=True` learns ONE camera-frame row (1, 6) for every pose, a camera mis-mounted on its
 rig: R'_i = R_i · Exp(ω) = Exp(R_i ω) · R_i, the same maths with every row's δ tied to the

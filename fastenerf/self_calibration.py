@@ -50,6 +50,18 @@ def pose_lr(cfg: TrainConfig, progress: float) -> float:
     return ramp * cfg.refine_lr * (cfg.refine_lr_final / cfg.refine_lr) ** r
 
 
+def pose_gauge(cfg: TrainConfig) -> str:
+    """The refiner's gauge: none for a shared row (it has none); "auto" is none for turns
+    only, since with the centres held at the given ones a turn shared by every camera about
+    its own centre is no rigid motion of the scene, and the mean gauge would keep the mean of
+    the pose errors for good (measured: benchmarks/RESULTS.md); mean when centres move too."""
+    if cfg.refine_shared:
+        return "none"
+    if cfg.refine_gauge == "auto":
+        return "mean" if cfg.refine_translation else "none"
+    return cfg.refine_gauge
+
+
 class SelfCalibration:
     """The learnt calibration of one training run (see the module docstring).
 
@@ -77,7 +89,7 @@ class SelfCalibration:
             self.poses = PoseRefiner(
                 sampler.grid_c2w,
                 used_rows(sampler),
-                "none" if cfg.refine_shared else cfg.refine_gauge,  # a shared row has no gauge
+                pose_gauge(cfg),
                 true_c2w,
                 translation=cfg.refine_translation,
                 shared=cfg.refine_shared,

@@ -226,6 +226,19 @@ def test_gauges():
         PoseRefiner(grid, used, "median")
 
 
+def test_auto_gauge_is_none_for_turns_about_the_given_centres():
+    """refine_gauge "auto" (the default): no gauge when only turns are learnt (the fixed
+    centres pin the frame), the mean gauge when the centres move too; a shared row has none;
+    an explicit choice stays."""
+    from fastenerf.self_calibration import pose_gauge
+
+    assert TrainConfig().refine_gauge == "auto" and pose_gauge(TrainConfig()) == "none"
+    assert pose_gauge(TrainConfig(refine_translation=True)) == "mean"
+    assert pose_gauge(TrainConfig(refine_gauge="first")) == "first"
+    shared = TrainConfig(refine_poses=True, refine_shared=True, refine_gauge="mean")
+    assert pose_gauge(shared) == "none"
+
+
 def test_zero_corrections_give_the_samplers_rays_bit_for_bit(ball):
     cfg, rig, events = ball
     index = EventIndex(events, 0.25, 0.25, t_start=0, t_end=cfg.t_end_us, loop=True)
