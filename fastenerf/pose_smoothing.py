@@ -30,6 +30,7 @@ from .errors import InputError
 from .perturb import rotation_angles_deg
 
 MIN_WINDOW = 5
+MAX_SPAN_DEG = 150.0  # a pose's farthest neighbour in its window: logs stay well inside 180°
 LOOP_TOL = 1e-6  # a grid's first and last poses this close (entries): one view, a loop
 
 
@@ -101,6 +102,7 @@ def smooth_poses(
             b = min(g, a + rows)
             rel = np.einsum("gji,gwjk->gwik", est[a:b], R[idx[a:b]])
             logs = Rotation.from_matrix(rel.reshape(-1, 3, 3)).as_rotvec().reshape(b - a, -1, 3)
+            _check_span(logs, window)
             turn = np.einsum("gw,gwk->gk", w[a:b], logs)
             est[a:b] = est[a:b] @ Rotation.from_rotvec(turn).as_matrix()
     out = c2w.copy()
@@ -108,6 +110,17 @@ def smooth_poses(
     if loop:
         out[g, :3, :3] = out[0, :3, :3]
     return out
+
+
+def _check_span(logs: np.ndarray, window: int) -> None:
+    """Refuse a window over which the path turns near half a revolution: a log's direction
+    is undefined at 180° (either sign fits) and the fit would average opposite vectors."""
+    top = float(np.degrees(np.linalg.norm(logs, axis=-1).max()))
+    if top > MAX_SPAN_DEG:
+        raise InputError(
+            f"smooth_poses: the path turns {top:.0f}° within half a window of {window} poses "
+            f"(at most {MAX_SPAN_DEG:.0f}°); choose a shorter window"
+        )
 
 
 def smoothed_rig(

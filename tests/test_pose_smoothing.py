@@ -134,6 +134,17 @@ def test_bad_windows_are_refused(window):
             TrainConfig(smooth_poses=window).validate()
 
 
+def test_a_window_spanning_half_a_turn_is_refused(scene_config):
+    """On a 400-pose orbit, a 351-pose window reaches ±157° about a pose: near 180° a log's
+    sign is arbitrary and the fit would average opposite turns, so it is one clear error;
+    301 poses (±135°) is still exact."""
+    _, rig, grid_t = orbit_rig(scene_config)
+    c2w = rig.pose(grid_t)
+    assert angles(c2w, smooth_poses(c2w, 301, loop=True, order=1)).max() < 1e-6
+    with pytest.raises(InputError, match="turns 158° within half a window of 351"):
+        smooth_poses(c2w, 351, loop=True)
+
+
 def test_bad_orders_are_refused():
     _, c2w = wobbly_timed(60)
     for order in (0, 3):
