@@ -40,8 +40,16 @@ def _module(name: str):
     return importlib.import_module(_module_name(name))
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, but a bad argument is one line ("fastenerf CMD: error: ...") and exit 2,
+    not the usage block first: the house rule for bad input. `--help` has the usage."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="fastenerf",
         description="Radiance fields from a single (colour) event camera, trained fast.",
     )

@@ -182,8 +182,9 @@ class PoseRefiner(nn.Module):
     def stats(self) -> dict[str, float]:
         """Mean / max size of the corrections on the used rows (degrees, world units) and,
         with true poses, the corrected poses' remaining rotation error and centre offset, the
-        world rotation they share (`gauge_rotation`'s angle) and the error left once it is
-        taken out (pose_error_aligned_deg)."""
+        angle of the world rotation they share against the truth (pose_gauge_deg,
+        `se3.mean_world_rotation`) and the error left once it is taken out
+        (pose_error_aligned_deg)."""
         # masked reductions over every row, not boolean indexing: one host read, at the end
         d, used = self.corrections().double(), self.used
         n = used.sum()

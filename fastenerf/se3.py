@@ -60,8 +60,8 @@ def mean_world_rotation(R_a: torch.Tensor, R_b: torch.Tensor, weights: torch.Ten
     R_a ≈ W · R_b: argmin Σ w_i ‖W R_b,i − R_a,i‖² (Procrustes, the polar factor of
     Σ w_i R_a,i R_b,iᵀ by SVD); weights: optional (N,) >= 0, not all 0. Same dtype as R_a.
 
-    Why: the rotation every camera shares about its own centre is the gauge a pose
-    refinement cannot see (its mean correction is held at zero), so a study aligns by it.
+    Why: it is the part of a refinement's pose error that every camera shares about its
+    own centre, the part a mean gauge holds (`PoseRefiner.stats` reports its angle).
     """
     w = torch.ones(R_a.shape[0], dtype=R_a.dtype, device=R_a.device) if weights is None else weights
     M = torch.einsum("n,nij,nkj->ik", w.to(R_a.dtype), R_a, R_b.to(R_a.dtype))

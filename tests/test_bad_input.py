@@ -505,9 +505,26 @@ def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
 
 
 def error_lines(err: str) -> list[str]:
-    """stderr without warnings, progress bars and argparse's usage lines."""
+    """stderr without warnings and progress bars."""
     lines = [ln for ln in err.splitlines() if ln.strip()]
-    return [ln for ln in lines if ": warning:" not in ln and not ln.startswith(("usage:", " "))]
+    return [ln for ln in lines if ": warning:" not in ln and not ln.startswith(" ")]
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["train", "SCENE", "--out", "RUN", "--refine-gauge", "bogus"],
+        ["train", "SCENE", "--out", "RUN", "--smooth-order", "two"],
+        ["train", "SCENE"],  # --out missing
+        ["no-such-command"],
+    ],
+)
+def test_argparse_errors_are_one_line(argv, tmp_path, capsys):
+    """A bad choice, a bad number or a missing argument: one line, exit 2, no usage block."""
+    code, _, err = run_cli([a.replace("RUN", str(tmp_path / "run")) for a in argv], capsys)
+    lines = [ln for ln in err.splitlines() if ln.strip() and ": warning:" not in ln]
+    assert code == 2 and len(lines) == 1 and ": error: " in lines[0], err
+    assert not (tmp_path / "run").exists()
 
 
 # ---------------------------------------------------------------------------- the tests

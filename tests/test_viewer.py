@@ -587,3 +587,17 @@ def test_interop_texture_takes_the_host_path_for_cpu_frames():
     tex.release()
     off.release()
     ctx.release()
+
+
+def test_bench_refuses_a_bad_cone_angle_in_one_line(tmp_path, capsys):
+    from fastenerf.viewer.bench import main
+
+    out = tmp_path / "fps.json"
+    out.write_text("kept")
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path), "--cone-angle", "-0.5", "--no-gl", "--out", str(out)])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert e.value.code == 2 and err == [
+        "viewer.bench: error: --cone-angle must be in [0, 1], got -0.5"
+    ]
+    assert out.read_text() == "kept"

@@ -17,6 +17,7 @@ frames at `size` and reports frames per second for:
 from __future__ import annotations
 
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -197,10 +198,14 @@ def main(argv: list[str] | None = None) -> None:
     a = p.parse_args(argv)
     from fastenerf.errors import FastenerfError
 
+    bad = [c for c in a.cone_angle if c != "default" and not 0 <= c <= 1]
     try:
+        if bad:
+            raise FastenerfError(f"--cone-angle must be in [0, 1], got {bad[0]}")
         run(a)
     except FastenerfError as e:
-        raise SystemExit(f"viewer.bench: error: {e}") from None
+        print(f"viewer.bench: error: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def run(a) -> None:
