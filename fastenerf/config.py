@@ -357,10 +357,10 @@ class TrainConfig:
     """bf16 autocast of the MLPs (CUDA only)."""
     device: str = "auto"
     """auto (CUDA if there is one, else CPU), cpu, cuda or cuda:N."""
-    step_mode: Literal["auto", "plain", "device"] = "auto"
-    """plain: the host reads each step's loss before updating (the debugging path); device: the
-    finite-loss check, the skip and the stats stay on the device, read every few steps (needs a
-    fused Adam); auto: device on CUDA, plain on the CPU."""
+    step_mode: Literal["auto", "plain", "device", "graph"] = "auto"
+    """plain: the host reads each step's loss before updating (debugging); device: the finite
+    check, skip and stats stay on the device, read every few steps (fused Adam); graph: device,
+    replayed from a CUDA graph (ngp); auto: device on CUDA, plain on the CPU."""
     chunk: int = field(default=16384, metadata={"min": 1, "max": 1 << 22})
     """Rays per render call outside training (evaluation, rendering)."""
     backend_options: dict[str, Any] = field(default_factory=dict)

@@ -57,6 +57,36 @@ def make_adam(
     return RowSparseAdam(groups, lr=lr, betas=betas, eps=eps, row_sparse=row_sparse)
 
 
+def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
+    """Each group's learning rate = lr × its "lr_scale" (default 1); a tensor learning rate (one
+    a captured step reads, `lr_as_tensors`) is filled in place, without a host wait."""
+    for g in optimizer.param_groups:
+        value = lr * g.get("lr_scale", 1.0)
+        if torch.is_tensor(g["lr"]):
+            g["lr"].fill_(value)
+        else:
+            g["lr"] = value
+
+
+def lr_as_tensors(optimizer: torch.optim.Optimizer, device: torch.device) -> None:
+    """Make a fused Adam capturable: its learning rates 0-dim tensors on `device` (a graph
+    reads them when replayed; a float would be baked in at capture). float32 on CUDA, as the
+    fused CUDA kernel takes it; float64 on a CPU, whose kernel takes a float lr as a double."""
+    dtype = torch.float64 if torch.device(device).type == "cpu" else torch.float32
+    for g in optimizer.param_groups:
+        g["lr"] = torch.tensor(float(g["lr"]), dtype=dtype, device=device)
+        g["capturable"] = True
+
+
+def lr_as_floats(optimizer: torch.optim.Optimizer) -> None:
+    """Undo `lr_as_tensors` (also after loading a state saved with tensor learning rates)."""
+    for g in optimizer.param_groups:
+        if torch.is_tensor(g["lr"]):
+            g["lr"] = float(g["lr"])
+        if "capturable" in g:
+            g["capturable"] = False
+
+
 class RowSparseAdam(torch.optim.Optimizer):
     """Adam whose `row_sparse` parameters (tables, rows = dim 0) update only the rows their
     backward passes recorded (see the module docstring for the lazy semantics); every other

@@ -28,11 +28,12 @@ from .data.formats.native import Scene
 from .device_step import FiniteGuard, PendingStats, device_scalar, supports_device_guard
 from .errors import InputError
 from .fields import Field, make_field
+from .graph_step import GraphedStep
 from .hooks import Hook, default_hooks
 from .io import write_json
 from .losses import total_loss
 from .memory import check_ray_batch
-from .optim import make_adam
+from .optim import lr_as_floats, lr_as_tensors, make_adam, set_lr
 from .perturb import perturb_training_data
 from .pose_smoothing import smoothed_rig
 from .run import (
@@ -216,16 +217,20 @@ class Trainer:
             betas=tuple(self.cfg.adam_betas),
             eps=self.cfg.adam_eps,
             row_sparse=[table] if isinstance(table, torch.nn.Parameter) else [],
-            fused=self.cfg.step_mode == "device",  # its found_inf skips on the device
+            fused=self.cfg.step_mode in ("device", "graph"),  # found_inf skips on the device
         )
 
-    def set_step_mode(self, mode: str) -> str:
+    def set_step_mode(self, mode: str, capture: bool | None = None) -> str:
         """Choose the step: "plain" (host reads the loss each step), "device" (device-paced,
-        `fastenerf.device_step`) or "auto" (device on CUDA when the optimiser allows it).
-        Returns the mode in use; "device" falls back to plain without a fused torch Adam."""
+        `fastenerf.device_step`), "graph" (device-paced and replayed from a CUDA graph,
+        `fastenerf.graph_step`; `capture` False runs its body eagerly) or "auto" (device on
+        CUDA when the optimiser allows it). Returns the mode in use: "graph" falls back to
+        device where the field or self-calibration cannot be captured, "device" to plain
+        without a fused torch Adam."""
         self.flush_stats()
         want = mode if mode != "auto" else ("device" if self.device.type == "cuda" else "plain")
-        if want == "device" and supports_device_guard(self.optimizer):
+        self.graph = None
+        if want in ("device", "graph") and supports_device_guard(self.optimizer):
             params = [p for g in self.optimizer.param_groups for p in g["params"]]
             if self.selfcal is not None:  # one flag: a non-finite gradient anywhere skips all
                 params += self.selfcal.parameters()
@@ -239,7 +244,18 @@ class Trainer:
             self.step_mode = "plain"
         if hasattr(self.field, "use_fixed_capacity"):  # no host read of the sample count
             self.field.use_fixed_capacity(self.step_mode == "device")
+        lr_as_floats(self.optimizer)
+        if want == "graph" and self.step_mode == "device" and self.selfcal is None:
+            if self.field.graph_key() is not None:
+                lr_as_tensors(self.optimizer, self.device)
+                self.graph = GraphedStep(self._graph_body, self.field, self.device, capture)
+                self.step_mode = "graph"
         return self.step_mode
+
+    def _graph_body(self, batch) -> tuple[dict, torch.Tensor, dict]:
+        """What a graphed step captures: render, loss, backward, guard and update."""
+        out, loss, parts = self._forward(batch)
+        return out, self._update_on_device(loss), parts
 
     def _make_self_calibration(self) -> SelfCalibration | None:
         if not SelfCalibration.wanted(self.cfg):
@@ -339,8 +355,7 @@ class Trainer:
         with self.lock:
             t_begin = time.perf_counter()
             lr = self.lr_at(self.step_count)
-            for g in self.optimizer.param_groups:
-                g["lr"] = lr * g.get("lr_scale", 1.0)
+            set_lr(self.optimizer, lr)
             self.field.train()
             # The named ranges are what benchmarks.profile_step attributes time to (a range
             # costs ~1 µs when no profiler runs).
@@ -350,11 +365,14 @@ class Trainer:
                 self.field.update(self.step_count)
             with record_function("sample_rays"):
                 batch = self.sampler.sample()
-            out, loss, parts = self._forward(batch)
-            if self.guard is None:
-                loss_value = self._update_plain(loss)
+            if self.graph is not None:
+                out, loss_value, parts = self.graph(batch)
             else:
-                loss_value = self._update_on_device(loss)
+                out, loss, parts = self._forward(batch)
+                if self.guard is None:
+                    loss_value = self._update_plain(loss)
+                else:
+                    loss_value = self._update_on_device(loss)
             self.step_count += 1
             if self.sync_clock:
                 self.sync()
@@ -420,7 +438,8 @@ class Trainer:
             rays_o, rays_d, target, reg = self.selfcal.apply(batch)
         with (
             record_function("render"),
-            torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.amp),
+            # a captured step must not keep autocast's cast weights from one replay to the next
+            torch.autocast(self.device.type, torch.bfloat16, self.amp, self.graph is None),
         ):
             out = self.field.render(
                 rays_o,

@@ -104,6 +104,12 @@ class Field(torch.nn.Module):
         width, height: image size in pixels; near: world units. A no-op by default.
         """
 
+    def graph_key(self) -> tuple | None:
+        """What a CUDA graph of a training step bakes in from this field (buffer sizes, the
+        march's cone): a captured step is replayed only while it is unchanged
+        (`fastenerf.graph_step`). None (the default): training steps are not captured."""
+        return None
+
     def update(self, step: int) -> None:
         """Per-step housekeeping before training step `step` (the ngp occupancy grid); a no-op
         by default."""

@@ -116,6 +116,8 @@ class NGPField(Field):
     sample_capacity: SampleCapacity | None = None
     # the same for the compacted samples (MarcherOptions.early_stop_eps), None: exact or off
     pruned_capacity: SampleCapacity | None = None
+    # (R,) uniform [0, 1) march offsets drawn outside a captured step (None: drawn per march)
+    train_jitter: torch.Tensor | None = None
     _fixed_out = None
     _fixed_key = None
     _pruned_out = None
@@ -301,12 +303,14 @@ class NGPField(Field):
         """Training or inference samples: (packed_info, t_starts, t_ends, ray_idx), or a
         FixedSamples when training marches into fixed-capacity buffers."""
         opt = self.options.marcher
-        cone = opt.cone_angle
-        if train and opt.early_cone_angle is not None and self.train_step < opt.early_steps:
-            cone = opt.early_cone_angle
+        cone = self._train_cone() if train else opt.cone_angle
         if not train and (view := view_cone_angle()) is not None:
             cone = max(cone, view)
-        jitter = torch.rand(len(rays_o), device=rays_o.device) if train else None
+        jitter = None
+        if train:
+            jitter = self.train_jitter
+            if jitter is None or len(jitter) != len(rays_o):
+                jitter = torch.rand(len(rays_o), device=rays_o.device)
         march = dict(
             near=near,
             cone_angle=cone,
@@ -317,6 +321,20 @@ class NGPField(Field):
         if train and self.sample_capacity is not None:
             return self._march_fixed(rays_o, rays_d, cone, march)
         return march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
+
+    def _train_cone(self) -> float:
+        opt = self.options.marcher
+        if opt.early_cone_angle is not None and self.train_step < opt.early_steps:
+            return opt.early_cone_angle
+        return opt.cone_angle
+
+    def graph_key(self) -> tuple | None:
+        """Capturable while training marches into fixed buffers and no level weights (pose
+        refinement's coarse-to-fine) change per step: (capacities, cone)."""
+        if self.sample_capacity is None or self.level_weights is not None:
+            return None
+        pruned = self.pruned_capacity
+        return (self.sample_capacity.capacity, pruned and pruned.capacity, self._train_cone())
 
     def use_fixed_capacity(self, on: bool) -> None:
         """March (and compact) training batches into fixed-capacity buffers (no host sync;

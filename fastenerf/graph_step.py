@@ -1,0 +1,187 @@
+"""A training step replayed from a CUDA graph (issue #17): one launch for the whole step.
+
+The device-paced step (`device_step`) no longer waits for the device, but its host still issues
+every kernel of the step (~150 launches, each a few µs of Python and driver time), so a step
+whose kernels are short is paced by the host. Here the render, the loss, the backward, the
+finite-loss guard and the fused Adam update are captured once into a CUDA graph and replayed:
+
+- **Static inputs.** The batch is copied into buffers the graph reads (`_Static`); the ray
+  jitter is drawn into one too, outside the graph, from the same generator and in the same order
+  as the device path draws it, so both paths take the same steps.
+- **Learning rate** as device tensors the fused Adam reads (`optim.lr_as_tensors`), filled in
+  place before each replay.
+- **What the graph bakes in** is the field's `graph_key()` (the fixed sample buffers' capacities,
+  the march's cone) and the batch shape; when it changes (the capacity follows the scene's
+  carving), the step runs eagerly for `WARMUP` steps on a side stream and is captured again.
+- **Stats** are one stacked vector the graph writes; each step's copy of it goes to the
+  trainer's pending stats, so nothing reads the device per step.
+
+Where nothing is captured (a CPU, `capture=False`) the same body runs eagerly on the same static
+buffers: the path the tests compare with the plain step. A capture that fails falls back to that
+eager path for the rest of the run, with one warning.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from .sampling import RayBatch
+
+# Eager steps with an unchanged key before a capture (torch's rule: warm up on a side stream so
+# lazily made state, e.g. the optimiser's moments and cuBLAS workspaces, exists before capture).
+WARMUP = 2
+
+# body(batch) -> (out, loss, parts): render, loss, backward and update of one batch; the loss
+# and parts are 0-dim device tensors.
+StepBody = Callable[[RayBatch], tuple[dict, torch.Tensor, dict]]
+
+
+@dataclass
+class _Static:
+    """The batch fields a step reads, in buffers a graph can be replayed on."""
+
+    rays_o: torch.Tensor  # (2B, 3) float32
+    rays_d: torch.Tensor  # (2B, 3) float32
+    target: torch.Tensor  # (B,) float32
+    channel: torch.Tensor | None  # (B,) int64 or None (mono)
+    jitter: torch.Tensor  # (2B,) float32 uniform [0, 1) march offsets
+
+    @classmethod
+    def like(cls, batch: RayBatch) -> _Static:
+        ch = batch.channel
+        return cls(
+            torch.empty_like(batch.rays_o),
+            torch.empty_like(batch.rays_d),
+            torch.empty_like(batch.target),
+            None if ch is None else torch.empty_like(ch),
+            torch.empty(len(batch.rays_o), device=batch.rays_o.device),
+        )
+
+    def fill(self, batch: RayBatch) -> RayBatch:
+        """Copy `batch` in; returns a RayBatch whose tensors are these buffers."""
+        self.rays_o.copy_(batch.rays_o)
+        self.rays_d.copy_(batch.rays_d)
+        self.target.copy_(batch.target)
+        if self.channel is not None:
+            self.channel.copy_(batch.channel)
+        torch.rand(len(self.jitter), out=self.jitter)  # the device path's draw, same order
+        fields = dict(rays_o=self.rays_o, rays_d=self.rays_d, target=self.target)
+        return RayBatch(**{**batch.__dict__, **fields, "channel": self.channel})
+
+
+def batch_key(batch: RayBatch) -> tuple:
+    """The shapes a graph of this batch bakes in."""
+    ch = batch.channel
+    return (tuple(batch.rays_o.shape), tuple(batch.target.shape), None if ch is None else ch.dtype)
+
+
+class GraphedStep:
+    """Runs `body` on static copies of each batch, replayed from a CUDA graph where it can.
+
+    body: see `StepBody`; field: the trained field (its `graph_key()` and `train_jitter`);
+    capture: capture graphs (default: on CUDA). Attributes: captures (graphs captured so far),
+    failure (why capture was given up, or None), replays (steps replayed).
+    """
+
+    def __init__(self, body: StepBody, field, device: torch.device, capture: bool | None = None):
+        self.body, self.field, self.device = body, field, torch.device(device)
+        self.capture = self.device.type == "cuda" if capture is None else bool(capture)
+        self.captures = self.replays = 0
+        self.failure: str | None = None
+        self._key: tuple | None = None
+        self._static: _Static | None = None
+        self._graph: torch.cuda.CUDAGraph | None = None
+        self._out: tuple[dict, torch.Tensor, dict] | None = None
+        self._warm = 0
+        self._stream = torch.cuda.Stream(self.device) if self.capture else None
+
+    def __call__(self, batch: RayBatch) -> tuple[dict, torch.Tensor, dict]:
+        """One training step on `batch`. Returns (out, loss, parts) as the device path's
+        `_forward` + update would, but with every tensor value a copy that later steps leave
+        alone: out holds "n_samples" (and "n_marched") only."""
+        key = (batch_key(batch), self.field.graph_key())
+        if key != self._key:
+            if self._key is None or key[0] != self._key[0]:
+                self._static = None  # another batch shape: new buffers
+            self.drop()
+            self._key = key
+        if self._static is None:
+            self._static = _Static.like(batch)
+        static = self._static.fill(batch)
+        self.field.train_jitter = self._static.jitter
+        try:
+            return self._snapshot(*self._run(static))
+        finally:
+            self.field.train_jitter = None
+
+    def _run(self, static: RayBatch) -> tuple[dict, torch.Tensor, dict]:
+        if self._graph is not None:
+            self._graph.replay()
+            self.replays += 1
+            return self._out
+        if not self.capture or self._warm < WARMUP:
+            self._warm += 1
+            return self._eager(static)
+        try:
+            self._out = self._capture(static)
+        except RuntimeError as e:  # a capture the driver or torch refused: run eagerly
+            self.give_up(e)
+            return self._eager(static)
+        self._graph.replay()  # the capture ran nothing: this step's update happens now
+        self.replays += 1
+        return self._out
+
+    def _eager(self, static: RayBatch) -> tuple[dict, torch.Tensor, dict]:
+        if self._stream is None:
+            return self.body(static)
+        self._stream.wait_stream(torch.cuda.current_stream(self.device))
+        with torch.cuda.stream(self._stream):
+            res = self.body(static)
+        torch.cuda.current_stream(self.device).wait_stream(self._stream)
+        return res
+
+    def _capture(self, static: RayBatch) -> tuple[dict, torch.Tensor, dict]:
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+            out = self.body(static)
+        self._graph = graph
+        self.captures += 1
+        return out
+
+    def give_up(self, error: BaseException) -> None:
+        """Stop capturing for the rest of the run (one warning); steps run eagerly."""
+        self.failure = f"{type(error).__name__}: {error}".splitlines()[0]
+        self.capture = False
+        self.drop()
+        warnings.warn(f"CUDA-graph step off, eager from here: {self.failure}", stacklevel=3)
+
+    def drop(self) -> None:
+        """Forget the graph (and the gradients it owns); the next steps warm up again."""
+        if self._graph is not None:
+            for p in self._graph_params():
+                p.grad = None
+        self._graph = self._out = None
+        self._warm = 0
+
+    def _graph_params(self):
+        return [p for p in self.field.parameters() if p.grad is not None]
+
+    @staticmethod
+    def _snapshot(out: dict, loss: torch.Tensor, parts: dict) -> tuple[dict, torch.Tensor, dict]:
+        """Copies of the step's numbers (one stack, one launch) that the next replay keeps."""
+        counts = {k: out[k] for k in ("n_samples", "n_marched") if k in out}
+        values = [loss, *parts.values(), *counts.values()]
+        if not all(torch.is_tensor(v) for v in values):  # exactly sized (eager) counts
+            return counts, loss, parts
+        row = torch.stack([v.detach().float().reshape(()) for v in values])
+        snap = list(row.unbind())
+        n = len(parts)
+        return (
+            dict(zip(counts, snap[1 + n :], strict=True)),
+            snap[0],
+            dict(zip(parts, snap[1 : 1 + n], strict=True)),
+        )
