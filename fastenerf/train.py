@@ -221,12 +221,10 @@ class Trainer:
         )
 
     def set_step_mode(self, mode: str, capture: bool | None = None) -> str:
-        """Choose the step: "plain" (host reads the loss each step), "device" (device-paced,
-        `fastenerf.device_step`), "graph" (device-paced and replayed from a CUDA graph,
-        `fastenerf.graph_step`; `capture` False runs its body eagerly) or "auto" (device on
-        CUDA when the optimiser allows it). Returns the mode in use: "graph" falls back to
-        device where the field or self-calibration cannot be captured, "device" to plain
-        without a fused torch Adam."""
+        """Choose the step: "plain" (host reads the loss), "device" (`device_step`), "graph"
+        (device, replayed from a CUDA graph: `graph_step`; capture=False runs it eagerly) or
+        "auto" (device on CUDA). Returns the mode in use: graph falls back to device where the
+        step cannot be captured (field, self-calibration), device to plain without fused Adam."""
         self.flush_stats()
         want = mode if mode != "auto" else ("device" if self.device.type == "cuda" else "plain")
         self.graph = None
@@ -413,7 +411,9 @@ class Trainer:
         non-finite counters. A no-op on the plain path. Returns the flushed stats."""
         if not getattr(self, "pending", None) or self.guard is None:
             return []
+        t = time.perf_counter()  # the copy waits for the queued steps: training time
         done, (run, skipped) = self.pending.flush([self.guard.run, self.guard.skipped])
+        self.train_seconds += time.perf_counter() - t
         self.nonfinite_run = int(run)
         self.skipped_steps = self._skipped_before_guard + int(skipped)
         for st in done:
@@ -575,6 +575,7 @@ class Trainer:
         for h in self._hooks:
             h.before_checkpoint(self)
         self.flush_stats()
+        self.settle_clock()  # the copy below would wait for queued steps off the clock
         path = self.out_dir / CHECKPOINT
         self.wait_for_checkpoint()
         with self.lock:

@@ -280,3 +280,23 @@ def test_device_path_skips_a_non_finite_calibration_gradient(scene, tmp_path):
     after, cal_after = weights(trainer), calibration(trainer)
     assert all(torch.equal(before[k], after[k]) for k in before)
     assert all(torch.equal(cal[k], cal_after[k]) for k in cal)
+
+
+def test_the_wait_in_a_stats_flush_is_training_time(scene, tmp_path):
+    """A flush's copy waits for the steps the device still has queued; that wait is the steps'
+    time, so the training clock (budgets, error-vs-time) must count it."""
+    import time
+
+    trainer = make(scene, tmp_path / "run", "device", steps=4)
+    for _ in range(2):
+        trainer.step()
+    flush = trainer.pending.flush
+
+    def slow_flush(extra=None):  # as a GPU would: the copy returns when the queue has run
+        time.sleep(0.2)
+        return flush(extra)
+
+    trainer.pending.flush = slow_flush
+    before = trainer.train_seconds
+    trainer.flush_stats()
+    assert trainer.train_seconds - before >= 0.2
