@@ -57,6 +57,26 @@ def make_adam(
     return RowSparseAdam(groups, lr=lr, betas=betas, eps=eps, row_sparse=row_sparse)
 
 
+def field_adam(field: torch.nn.Module, cfg, device: torch.device) -> torch.optim.Optimizer:
+    """The training run's Adam over `field.param_groups()` (`make_adam`): cfg a TrainConfig
+    (lr, adam_betas, adam_eps, step_mode: the device-paced steps need the fused Adam, whose
+    found_inf skips on the device). Each group keeps its lr_scale (its lr / cfg.lr)."""
+    groups = field.param_groups()
+    for g in groups:
+        g.setdefault("lr", cfg.lr)
+        g["lr_scale"] = g["lr"] / cfg.lr
+    table = getattr(field, "table", None)  # the ngp field's hash table
+    return make_adam(
+        groups,
+        device,
+        lr=cfg.lr,
+        betas=tuple(cfg.adam_betas),
+        eps=cfg.adam_eps,
+        row_sparse=[table] if isinstance(table, torch.nn.Parameter) else [],
+        fused=cfg.step_mode in ("device", "graph"),
+    )
+
+
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     """Each group's learning rate = lr × its "lr_scale" (default 1); a tensor learning rate (one
     a captured step reads, `lr_as_tensors`) is filled in place, without a host wait."""

@@ -100,6 +100,17 @@ class WindowSampler:
         self.lengths = state["lengths"]
 
 
+def to_device(a, device: torch.device) -> torch.Tensor:
+    """A host array on `device` without waiting for the device: a copy from pageable memory is
+    ordered after every queued kernel and holds the host until they have run (the device-paced
+    and graphed steps keep steps queued while the next batch is drawn); one from pinned memory
+    does not. a: numpy array or CPU tensor; on a CPU it is shared, not copied."""
+    t = torch.as_tensor(a)
+    if torch.device(device).type != "cuda":
+        return t
+    return t.pin_memory().to(device, non_blocking=True)
+
+
 @dataclass
 class RayBatch:
     """One step's rays: B pixels, each rendered at t0 (rows :B) and t1 (rows B:).
@@ -211,9 +222,9 @@ class RaySampler:
             got = self._kernel_query(
                 kernel,
                 arrays,
-                torch.as_tensor(pix, device=self.device),
-                torch.as_tensor(t0, device=self.device),
-                torch.as_tensor(t1, device=self.device),
+                to_device(pix, self.device),
+                to_device(t0, self.device),
+                to_device(t1, self.device),
             )
             ok = np.allclose(got.cpu().numpy(), want, atol=1e-5)
         except Exception as e:  # noqa: BLE001 - a broken kernel must not stop training
@@ -271,12 +282,12 @@ class RaySampler:
                 self._kernel,
                 self._kernel_arrays,
                 pix,
-                torch.as_tensor(t0, device=self.device),
-                torch.as_tensor(t1, device=self.device),
+                to_device(t0, self.device),
+                to_device(t1, self.device),
                 any_wraps=bool(self.index.loop and np.any(np.asarray(t0) < self.index.t_start)),
             )
         e = self.index.query(pix.cpu().numpy(), t0, t1)
-        return torch.from_numpy(e).to(self.device)
+        return to_device(e, self.device)
 
     def parts(self, pix: torch.Tensor, t0: np.ndarray, t1: np.ndarray) -> torch.Tensor:
         """The target's polarity parts [a, b] (B, 2) float32: E = a·C_pos + b·C_neg, so
@@ -284,8 +295,8 @@ class RaySampler:
         if self._kernel is not None:
             args = (
                 pix,
-                torch.as_tensor(t0, device=self.device),
-                torch.as_tensor(t1, device=self.device),
+                to_device(t0, self.device),
+                to_device(t1, self.device),
                 bool(self.index.loop and np.any(np.asarray(t0) < self.index.t_start)),
             )
             k, arrays = self._kernel, self._kernel_arrays
@@ -301,14 +312,14 @@ class RaySampler:
             n, n_pos = n + n2, n_pos + n_pos2
         off = idx.polarity_offset
         ab = np.stack([(1.0 + off) * n_pos, (off - 1.0) * (n - n_pos)], 1).astype(np.float32)
-        return torch.from_numpy(ab).to(self.device)
+        return to_device(ab, self.device)
 
     # -- pixels ------------------------------------------------------------------------------
 
     def event_pixels(self, t0: np.ndarray, t1: np.ndarray, n: int) -> torch.Tensor:
         """(W, n) pixels of random events in each window (t0, t1] (W,); -1 where none."""
         t0a, t1a, t0b, t1b = self.index.split_wrapped(t0, t1)
-        q = torch.as_tensor(np.stack([t0a, t1a, t0b, t1b], 1), device=self.device)
+        q = to_device(np.stack([t0a, t1a, t0b, t1b], 1), self.device)
         # Both parts as (t0, t1]: index ranges [i0, i1) of the time-sorted stream.
         i = torch.searchsorted(self.times_sorted, q.contiguous(), right=True)
         ca = (i[:, 1] - i[:, 0]).clamp_min(0)
@@ -347,8 +358,8 @@ class RaySampler:
             pix = uniform
         win = torch.arange(w, device=self.device).repeat_interleave(n)
         pix = pix.reshape(-1)
-        p0 = torch.as_tensor(self.windows.pose_index(j0), device=self.device)
-        p1 = torch.as_tensor(self.windows.pose_index(j1), device=self.device)
+        p0 = to_device(self.windows.pose_index(j0), self.device)
+        p1 = to_device(self.windows.pose_index(j1), self.device)
         dirs = self.dirs[pix]
         o0, d0 = generate_rays(dirs, self.grid_c2w[p0][win])
         o1, d1 = generate_rays(dirs, self.grid_c2w[p1][win])

@@ -33,7 +33,7 @@ from .hooks import Hook, default_hooks
 from .io import write_json
 from .losses import total_loss
 from .memory import check_ray_batch
-from .optim import lr_as_floats, lr_as_tensors, make_adam, set_lr
+from .optim import field_adam, lr_as_floats, lr_as_tensors, set_lr
 from .perturb import perturb_training_data
 from .pose_smoothing import smoothed_rig
 from .run import (
@@ -89,7 +89,7 @@ class Trainer:
         self._check_batch_memory()
         self._build_data(scene)
         self.field: Field = make_field(self.cfg.backend, scene.config, self.cfg).to(self.device)
-        self.optimizer = self._make_optimizer()
+        self.optimizer = field_adam(self.field, self.cfg, self.device)
         self.selfcal = self._make_self_calibration()  # None unless refine/estimate is on
         bg = scene_background(scene.config)
         self.background = None if bg is None else torch.tensor(bg, device=self.device)
@@ -201,24 +201,6 @@ class Trainer:
         c2w = self.sampler.grid_c2w[:-1].cpu().numpy()
         c2w = c2w[np.unique(np.linspace(0, len(c2w) - 1, OBSERVED_VIEWS).round().astype(int))]
         self.field.observe_cameras(self.rig.intrinsics.K, c2w, sc.width, sc.height, sc.near)
-
-    def _make_optimizer(self) -> torch.optim.Optimizer:
-        """Adam (fastenerf.optim.make_adam): fused on CUDA; on a CPU the hash table's rows are
-        updated only where a step's backward wrote them (RowSparseAdam)."""
-        groups = self.field.param_groups()
-        for g in groups:
-            g.setdefault("lr", self.cfg.lr)
-            g["lr_scale"] = g["lr"] / self.cfg.lr
-        table = getattr(self.field, "table", None)  # the ngp field's hash table
-        return make_adam(
-            groups,
-            self.device,
-            lr=self.cfg.lr,
-            betas=tuple(self.cfg.adam_betas),
-            eps=self.cfg.adam_eps,
-            row_sparse=[table] if isinstance(table, torch.nn.Parameter) else [],
-            fused=self.cfg.step_mode in ("device", "graph"),  # found_inf skips on the device
-        )
 
     def set_step_mode(self, mode: str, capture: bool | None = None) -> str:
         """Choose the step: "plain" (host reads the loss), "device" (`device_step`), "graph"
@@ -409,11 +391,16 @@ class Trainer:
     def flush_stats(self) -> list[dict]:
         """Bring device-held stats to the host (one copy) and into `history`; update the
         non-finite counters. A no-op on the plain path. Returns the flushed stats."""
-        if not getattr(self, "pending", None) or self.guard is None:
+        p = getattr(self, "pending", None)
+        if p is None or self.guard is None or not (len(p) or p.in_flight):
             return []
         t = time.perf_counter()  # the copy waits for the queued steps: training time
-        done, (run, skipped) = self.pending.flush([self.guard.run, self.guard.skipped])
+        done = self._took(self.pending.flush([self.guard.run, self.guard.skipped]))
         self.train_seconds += time.perf_counter() - t
+        return done
+
+    def _took(self, flushed: tuple[list[dict], list[float]]) -> list[dict]:
+        done, (run, skipped) = flushed
         self.nonfinite_run = int(run)
         self.skipped_steps = self._skipped_before_guard + int(skipped)
         for st in done:
@@ -499,8 +486,11 @@ class Trainer:
             self._append_history(stats)
             return stats
         self.pending.add(stats)
-        if len(self.pending) >= STATS_FLUSH_EVERY:
-            self.flush_stats()
+        if len(self.pending) >= STATS_FLUSH_EVERY:  # on CUDA read one flush later: no wait
+            if self.device.type != "cuda":
+                self.flush_stats()
+            elif got := self.pending.rotate([self.guard.run, self.guard.skipped]):
+                self._took(got)
         return stats
 
     # -- the loop ----------------------------------------------------------------------------

@@ -300,3 +300,23 @@ def test_the_wait_in_a_stats_flush_is_training_time(scene, tmp_path):
     before = trainer.train_seconds
     trainer.flush_stats()
     assert trainer.train_seconds - before >= 0.2
+
+
+def test_pending_stats_rotate_reads_each_copy_one_flush_later():
+    """The trainer's own flushes start a copy and take it at the next one (on CUDA it has
+    long arrived by then); an explicit flush takes the copy in flight and the rest at once."""
+    from fastenerf.device_step import PendingStats
+
+    p = PendingStats()
+    first = [{"loss": torch.tensor(float(i))} for i in range(3)]
+    for d in first:
+        p.add(d)
+    assert p.rotate([torch.tensor(7.0)]) is None and p.in_flight and len(p) == 0
+    second = {"loss": torch.tensor(5.0), "step": 4}
+    p.add(second)
+    done, extra = p.rotate([torch.tensor(8.0)])
+    assert done == first and [d["loss"] for d in done] == [0.0, 1.0, 2.0] and extra == [7.0]
+    assert torch.is_tensor(second["loss"])  # its copy is in flight now
+    p.add({"loss": torch.tensor(6.0)})
+    done, extra = p.flush([torch.tensor(9.0)])
+    assert [d["loss"] for d in done] == [5.0, 6.0] and extra == [9.0] and not p.in_flight

@@ -21,6 +21,17 @@ from .poses import load_poses
 BAYER_RGGB = np.array([[0, 1], [1, 2]], dtype=np.int64)
 
 
+_BAYER_TABLES: dict[torch.device, torch.Tensor] = {}
+
+
+def _bayer_table(device: torch.device) -> torch.Tensor:
+    """BAYER_RGGB as a (2, 2) int64 tensor on `device`, made once."""
+    t = _BAYER_TABLES.get(device)
+    if t is None:
+        t = _BAYER_TABLES[device] = torch.as_tensor(BAYER_RGGB, device=device)
+    return t
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Pinhole intrinsics in pixels with radial distortion (k1, k2).
@@ -270,8 +281,8 @@ class Rig:
         if self.bayer is None:
             return None
         w = self.intrinsics.width
-        if isinstance(pix, torch.Tensor):
-            table = torch.as_tensor(BAYER_RGGB, device=pix.device)
+        if isinstance(pix, torch.Tensor):  # made once per device: a copy per call would sync
+            table = _bayer_table(pix.device)
         else:
             pix, table = np.asarray(pix, dtype=np.int64), BAYER_RGGB
         y, x = pix // w, pix % w
