@@ -98,6 +98,7 @@ class Trainer:
         self.history: list[dict] = []  # recent steps' stats (trimmed to HISTORY_MAX)
         self.step_count = 0
         self.train_seconds = self.eval_seconds = self.wall_seconds = 0.0
+        self._queued = False  # steps the device may still be running (settle_clock)
         self.last_eval_psnr: float | None = None
         self.skipped_steps = 0
         self.nonfinite_run = 0  # consecutive steps with a non-finite loss
@@ -323,9 +324,12 @@ class Trainer:
     def settle_clock(self) -> None:
         """Wait for the steps the device still has queued and charge the wait to the training
         clock: after it, train_seconds is the device's time for every step taken so far."""
+        if not self._queued:  # nothing to wait for: a second settle must not add its own time
+            return
         t = time.perf_counter()
         self.sync()
         self.train_seconds += time.perf_counter() - t
+        self._queued = False
 
     def step(self) -> dict[str, Any]:
         """One optimisation step; returns stats (step, loss, rays_per_s, elapsed_s, lr, ...).
@@ -356,6 +360,7 @@ class Trainer:
             self.step_count += 1
             if self.sync_clock:
                 self.sync()
+            self._queued = self.device.type == "cuda" and not self.sync_clock
             dt = time.perf_counter() - t_begin
             self.train_seconds += dt
             return self._record(batch, out, parts, loss_value, lr, dt)
@@ -397,6 +402,7 @@ class Trainer:
         t = time.perf_counter()  # the copy waits for the queued steps: training time
         done = self._took(self.pending.flush([self.guard.run, self.guard.skipped]))
         self.train_seconds += time.perf_counter() - t
+        self._queued = False  # the copy came after every queued step
         return done
 
     def _took(self, flushed: tuple[list[dict], list[float]]) -> list[dict]:

@@ -302,6 +302,19 @@ def test_the_wait_in_a_stats_flush_is_training_time(scene, tmp_path):
     assert trainer.train_seconds - before >= 0.2
 
 
+def test_settling_the_clock_twice_adds_nothing(scene, tmp_path):
+    """Once the queue is drained (a settle, a flush, or a CPU step), another settle has
+    nothing to wait for and must not charge its own call to the training clock: a curve
+    point and the checkpoint written after its evaluation then agree on the time."""
+    trainer = make(scene, tmp_path / "run", "device", steps=4)
+    trainer.step()
+    trainer.flush_stats()
+    before = trainer.train_seconds
+    for _ in range(3):
+        trainer.settle_clock()
+    assert trainer.train_seconds == before
+
+
 def test_pending_stats_rotate_reads_each_copy_one_flush_later():
     """The trainer's own flushes start a copy and take it at the next one (on CUDA it has
     long arrived by then); an explicit flush takes the copy in flight and the rest at once."""
