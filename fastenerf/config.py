@@ -360,7 +360,8 @@ class TrainConfig:
     step_mode: Literal["auto", "plain", "device", "graph"] = "auto"
     """plain: the host reads each step's loss before updating (debugging); device: the finite
     check, skip and stats stay on the device, read every few steps (fused Adam); graph: device,
-    replayed from a CUDA graph (ngp); auto: device on CUDA, plain on the CPU."""
+    replayed from a CUDA graph (ngp; device where a step cannot be captured); auto: graph on
+    CUDA, plain on the CPU."""
     chunk: int = field(default=16384, metadata={"min": 1, "max": 1 << 22})
     """Rays per render call outside training (evaluation, rendering)."""
     backend_options: dict[str, Any] = field(default_factory=dict)

@@ -206,10 +206,11 @@ class Trainer:
     def set_step_mode(self, mode: str, capture: bool | None = None) -> str:
         """Choose the step: "plain" (host reads the loss), "device" (`device_step`), "graph"
         (device, replayed from a CUDA graph: `graph_step`; capture=False runs it eagerly) or
-        "auto" (device on CUDA). Returns the mode in use: graph falls back to device where the
-        step cannot be captured (field, self-calibration), device to plain without fused Adam."""
+        "auto" (graph on CUDA, plain on the CPU). Returns the mode in use: graph falls back to
+        device where the step cannot be captured (field, self-calibration), device to plain
+        without fused Adam."""
         self.flush_stats()
-        want = mode if mode != "auto" else ("device" if self.device.type == "cuda" else "plain")
+        want = mode if mode != "auto" else ("graph" if self.device.type == "cuda" else "plain")
         self.graph = None
         if want in ("device", "graph") and supports_device_guard(self.optimizer):
             params = [p for g in self.optimizer.param_groups for p in g["params"]]

@@ -253,6 +253,10 @@ class ViewSource:
         cfg = train_preset(preset, backend, **overrides)
         out = Path(out_dir) if out_dir else Path("runs") / f"{scene.config.name}-{backend}-view"
         trainer = Trainer(scene, cfg, out, resume=resume)
+        if cfg.step_mode == "auto" and trainer.step_mode == "graph":
+            # the GUI thread's own CUDA work (a frame's copy to the host) may not run while
+            # this thread captures a step
+            trainer.set_step_mode("device")
         return cls.from_field(
             trainer.field,
             scene,
