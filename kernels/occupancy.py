@@ -12,7 +12,8 @@ hold the sentinel -1 and stay empty forever.
 
 Update (instant-ngp's `update_density_grid`, every 16 steps from the trainer):
   - before `warmup_steps`: every valid cell is sampled; afterwards a uniform random quarter of
-    all cells plus up to as many randomly chosen occupied cells;
+    all cells plus as many drawn (with replacement) from the occupied ones; no count is read
+    on the host, so an update does not wait for the queued steps;
   - one uniformly jittered point per chosen cell, sigma = density_fn(x);
   - every valid cell decays, chosen cells take the max with their new value:
         density = max(density * decay, sigma_new)    (sigma_new = 0 for cells not chosen)
@@ -264,6 +265,7 @@ class OccupancyGrid:
         self.device = torch.device(device)
         n = self.n_cascades * self.resolution**3
         self.density = torch.zeros(self.n_cascades, self.resolution**3, device=self.device)
+        self._valid_cache: torch.Tensor | None = None  # `_valid_ids`; None after any -1 write
         self.bitfield = torch.zeros(n // 8, dtype=torch.uint8, device=self.device)
         # Until the first update every valid cell (density 0 > -0.5) is occupied.
         self.threshold = torch.full((1,), -0.5, device=self.device)
@@ -382,15 +384,13 @@ class OccupancyGrid:
         """
         valid = self.valid.view(-1)
         if step < warmup_steps:
-            ids = torch.nonzero(valid)[:, 0]
+            ids = self._valid_ids()
         else:
+            # fixed sizes, so the host never waits for a count; an invalid cell drawn here is
+            # evaluated and then left as it is by the `where(valid, ...)` below
             n = self.n_cells // 4
             uniform = torch.randint(0, self.n_cells, (n,), device=self.device)
-            occ = torch.nonzero(self.binary.view(-1))[:, 0]
-            if occ.numel() > n:
-                occ = occ[torch.randint(0, occ.numel(), (n,), device=self.device)]
-            ids = torch.cat([uniform, occ])
-            ids = ids[valid[ids]]
+            ids = torch.cat([uniform, self._draw_occupied(n)])
         pts = self.cell_points(ids)
         sig = [density_fn(pts[i : i + chunk]).reshape(-1) for i in range(0, pts.shape[0], chunk)]
         sig = torch.cat(sig) if sig else pts.new_zeros(0)
@@ -402,6 +402,20 @@ class OccupancyGrid:
         mean = torch.where(valid, d, 0.0).sum() / valid.sum().clamp_min(1)
         self.threshold = torch.clamp(mean, max=threshold / self.step_size).reshape(1)
         self._pack()
+
+    def _valid_ids(self) -> torch.Tensor:
+        """(M,) int64 flat ids of the valid cells; counted once (one host read) per change."""
+        if self._valid_cache is None:
+            self._valid_cache = torch.nonzero(self.valid.view(-1))[:, 0]
+        return self._valid_cache
+
+    def _draw_occupied(self, n: int) -> torch.Tensor:
+        """(n,) int64 flat ids drawn uniformly, with replacement, from the occupied cells
+        (instant-ngp's non-uniform half), without reading their count on the host. With no
+        cell occupied the draw is the last cell, which the update then simply re-measures."""
+        cum = torch.cumsum(self.binary.view(-1), 0)
+        r = (torch.rand(n, device=self.device, dtype=torch.float64) * cum[-1]).long()
+        return torch.searchsorted(cum, r, right=True).clamp_(max=self.n_cells - 1)
 
     @torch.no_grad()
     def mark_unseen(
@@ -435,6 +449,7 @@ class OccupancyGrid:
                 self.density.view(-1),
             ],
         )
+        self._valid_cache = None
         self._pack()
 
     # -- persistence --------------------------------------------------------------------------
@@ -459,12 +474,14 @@ class OccupancyGrid:
         self.step_size = float(sd["step_size"])
         self.cylinder = None if sd["cylinder"] is None else tuple(sd["cylinder"])
         self.density.copy_(sd["density"])
+        self._valid_cache = None
         self.threshold = sd["threshold"].to(self.device).reshape(1).float()
         self._pack()
 
     def to(self, device) -> OccupancyGrid:
         self.device = torch.device(device)
         self.density = self.density.to(self.device)
+        self._valid_cache = None
         self.bitfield = self.bitfield.to(self.device)
         self.threshold = self.threshold.to(self.device)
         return self

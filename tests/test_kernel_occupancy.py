@@ -75,7 +75,7 @@ def test_sparse_update_ema_rule():
     g.update(10, f, decay=0.9, threshold=0.01, warmup_steps=1)
     x = torch.cat(f.x).double().numpy()
     n = g.n_cells // 4
-    assert len(x) == n + min(n, occ_before.sum())
+    assert len(x) == 2 * n  # fixed sizes: the host never reads a count
     # which cell each point came from (C = 1: plain floor)
     ijk = np.floor((x + 1) / 2 * 16).astype(int).clip(0, 15)
     ids = (ijk[:, 0] * 16 + ijk[:, 1]) * 16 + ijk[:, 2]
@@ -84,11 +84,42 @@ def test_sparse_update_ema_rule():
     np.maximum.at(new, ids, sig)
     expect = np.maximum(old * 0.9, new)
     np.testing.assert_allclose(g.density.view(-1).double().numpy(), expect, rtol=1e-5, atol=1e-6)
-    if occ_before.sum() <= n:  # every occupied cell was re-evaluated
-        assert np.isin(np.nonzero(occ_before)[0], ids).all()
+    # the second half is drawn from the occupied cells, with replacement, uniformly
+    assert 0 < occ_before.sum() < g.n_cells and occ_before[ids[n:]].all()
+    hit = np.isin(np.nonzero(occ_before)[0], ids[n:]).mean()
+    assert hit > 1 - math.exp(-n / occ_before.sum()) - 0.1
     thre = min(0.01 / g.step_size, expect.mean())
     amb = np.abs(expect - thre) < 1e-4 * thre
     assert (g.binary.view(-1).numpy()[~amb] == (expect > thre)[~amb]).all()
+
+
+def test_sparse_update_with_no_occupied_cell():
+    """An empty grid has nothing to draw from: the draw still has its fixed size and the
+    update stays finite (no device-side assert, no host read)."""
+    _gen()
+    g = OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=8)
+    g.update(0, lambda x: torch.zeros(x.shape[0]), warmup_steps=1)
+    assert not g.binary.any()
+    f = Recorder(peak=0.0)
+    g.update(10, f, warmup_steps=1)
+    assert sum(len(x) for x in f.x) == 2 * (g.n_cells // 4)
+    assert torch.isfinite(g.density).all() and not g.binary.any()
+
+
+def test_warmup_update_skips_cells_marked_after_an_earlier_update():
+    """The warm-up's list of valid cells is counted once, and again after cells are marked
+    never occupied: a stale list would re-evaluate (and could revive) a marked cell."""
+    _gen()
+    g = OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=8)
+    g.update(0, Recorder())
+    K = torch.tensor([[80.0, 0, 8], [0, 80.0, 8], [0, 0, 1]])  # a narrow view
+    g.mark_unseen(K, torch.tensor(_look_at([0, 0, -4], [0, 0, 0]))[None], 16, 16, 0.5)
+    valid = g.valid.view(-1)
+    assert 0 < valid.sum() < g.n_cells
+    f = Recorder()
+    g.update(16, f)
+    assert sum(len(x) for x in f.x) == int(valid.sum())
+    assert (g.density.view(-1)[~valid] == -1).all()
 
 
 def test_nan_density_does_not_poison_the_grid():

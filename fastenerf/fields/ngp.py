@@ -407,7 +407,7 @@ class NGPField(Field):
         with torch.no_grad():
             self.grid.update(
                 step,
-                self.density,
+                lambda x: self._geometry(x)[0],  # the grid's own points: finite, not read back
                 decay=opt.grid_decay,
                 threshold=opt.density_threshold,
                 warmup_steps=opt.warmup_steps,
