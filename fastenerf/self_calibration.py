@@ -114,7 +114,7 @@ class SelfCalibration:
             raise ValueError("SelfCalibration: neither refine_poses nor estimate_threshold is on")
         # torch's Adam takes no empty list: a placeholder group when row-adam has the poses.
         # Fused where the field's Adam is (the device-paced step): it skips on `found_inf`.
-        fused = torch.device(sampler.device).type == "cuda" or cfg.step_mode == "device"
+        fused = torch.device(sampler.device).type == "cuda" or cfg.step_mode in ("device", "graph")
         self.optimizer = torch.optim.Adam(
             groups or [{"params": [], "name": "none"}],
             betas=ADAM_BETAS,
