@@ -67,6 +67,13 @@ class MarcherOptions:
     alpha_threshold: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     """With compaction, also drop training samples whose opacity alpha = 1 - exp(-σ·dt) is
     below this (nearly transparent ones; nerfacc's alpha_thre). 0: keep them all."""
+    compaction_auto: bool = False
+    """With compaction: compact only while it pays, i.e. while compositing uses less than
+    `compact_below` of the marched samples (measured on the training renders, read every
+    `update_every` steps; fields/compaction.py). False: compact every step."""
+    compact_below: float = field(default=0.7, metadata={"min": 0.0, "max": 1.0})
+    """The share of marched samples under which `compaction_auto` compacts (the density
+    pre-pass costs about 0.3 of a sample's full pass; ±0.05 hysteresis)."""
 
 
 @dataclass

@@ -630,3 +630,53 @@ def test_ngp_compacted_samples_in_fixed_buffers(make):
     f.train_step = f.options.marcher.early_steps
     late, _, _ = _train_render(f, o, d)
     assert late["valid"].all() and f.pruned_capacity.capacity >= int(late["n_samples"]) > 0
+
+
+def test_ngp_compaction_auto_keeps_compacting_only_where_it_pays(make):
+    """compaction_auto: the share of marched samples compositing uses, read one occupancy
+    update late, turns compaction off on a field that uses nearly all of them (a thin fog) and
+    keeps it on where most lie behind T < 1e-4 (a thick one). Off, the step is the plain one
+    (no pre-pass, its own graph key); on or off, pixels are those of all marched samples."""
+    o, d = hit_rays(24)
+    auto = dict(early_stop_eps=1e-4, compaction_auto=True)
+    for bias, stays_on in ((3.0, True), (-6.0, False)):
+        f, plain = make("ngp", density_bias=bias, **auto), make("ngp", density_bias=bias)
+        f.use_fixed_capacity(True)
+        first, _, _ = _train_render(f, o, d)  # auto starts compacting (a new field's fog)
+        assert "n_marched" in first and f.compaction.on
+        key = f.graph_key()
+        for step in (16, 32):  # the first update copies the sums, the second reads them
+            for g in (f, plain):  # the same grid updates (seeded): the same marched samples
+                torch.manual_seed(step)
+                g.update(step)
+            _train_render(f, o, d)
+        ref, _, _ = _train_render(plain, o, d)
+        share = f.compaction.share
+        assert share is not None and (share < 0.5 if stays_on else share > 0.9), share
+        assert f.compaction.on is stays_on and (f.pruned_capacity is not None) is stays_on
+        assert (f.graph_key() == key) is stays_on
+        out, _, g = _train_render(f, o, d)
+        assert ("n_marched" in out) is stays_on
+        assert out["valid"].all() and all(torch.isfinite(v).all() for v in g.values())
+        torch.testing.assert_close(out["rgb"], ref["rgb"], rtol=0, atol=1e-6)
+
+
+def test_compaction_switch_hysteresis():
+    """Within ±0.05 of `below` the state holds (no graph recaptured per flicker); beyond, it
+    switches; the first refresh only starts the copy (no reading yet)."""
+    from fastenerf.fields.compaction import CompactionSwitch
+
+    sw = CompactionSwitch(0.7)
+
+    def feed(share: float) -> bool:
+        w = torch.zeros(1000)
+        w[: round(1000 * share)] = 0.5
+        sw.observe(w, 1000)
+        return sw.refresh()
+
+    assert not feed(0.9) and sw.on and sw.share is None  # nothing read yet
+    assert feed(0.72) and not sw.on and sw.share == pytest.approx(0.9)  # 0.9 read: off
+    assert not feed(0.6) and not sw.on  # 0.72 read: inside the band, stays off
+    assert feed(0.72) and sw.on  # 0.6 read: on
+    assert not feed(0.72) and sw.on  # 0.72 read: inside the band, stays on
+    assert sw.switches == 2

@@ -14,7 +14,7 @@ import torch
 from fastenerf.data.formats.native import load_scene
 from fastenerf.graph_step import WARMUP
 from fastenerf.train import Trainer
-from tests.test_train import tiny_cfg
+from tests.test_train import NGP_TINY, tiny_cfg
 
 CUDA = torch.cuda.is_available()
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not CUDA, reason="no CUDA"))]
@@ -102,3 +102,19 @@ def test_graph_mode_survives_a_checkpoint_and_resume(scene, tmp_path):
     assert not torch.is_tensor(resumed.optimizer.param_groups[0]["lr"])
     resumed.run(hooks=[], progress=False)
     assert resumed.step_count == 6
+
+
+def test_graph_body_follows_the_compaction_switch_on_the_cpu(scene, tmp_path):
+    """compaction_auto with a share no field reaches (compact_below 0): the run compacts for
+    its first updates, then switches compaction off (a new graph key) and the graphed body
+    still takes the plain path's steps."""
+    opts = {**NGP_TINY, "early_stop_eps": 1e-4, "compaction_auto": True, "compact_below": 0.0}
+    kw = dict(steps=40, backend_options=opts)
+    plain = make(scene, tmp_path / "plain", "plain", **kw)
+    a = losses(plain, 40)
+    graph = make(scene, tmp_path / "graph", "graph", **kw)
+    b = losses(graph, 40)
+    assert a == b
+    for t in (plain, graph):
+        assert t.field.compaction.switches == 1 and not t.field.compaction.on
+        assert "marched_per_ray" in t.history[0] and "marched_per_ray" not in t.history[-1]

@@ -18,6 +18,42 @@ import math
 import torch
 
 
+class LaggedRead:
+    """A device tensor read on the host one call late, so the host never waits for it.
+
+    `start(t)` queues a non-blocking copy of `t` (in stream order: what `t` holds once the work
+    queued so far has run); `take()` returns that copy once it has arrived, and only once.
+    """
+
+    def __init__(self):
+        self._host: torch.Tensor | None = None
+        self._ready: torch.cuda.Event | None = None
+        self._fresh = False  # a copy was started and not yet taken
+
+    def busy(self) -> bool:
+        """A copy is still in flight."""
+        return self._fresh and self._ready is not None and not self._ready.query()
+
+    def take(self) -> torch.Tensor | None:
+        """The copy started last, on the host, if it has arrived and was not taken; else None."""
+        if not self._fresh or self.busy():
+            return None
+        self._fresh = False
+        return self._host
+
+    def start(self, t: torch.Tensor) -> None:
+        """Queue a copy of `t` to the host (pinned memory on CUDA)."""
+        on_cuda = t.device.type == "cuda"
+        if self._host is None or self._host.shape != t.shape or self._host.dtype != t.dtype:
+            self._host = torch.empty_like(t, device="cpu", pin_memory=on_cuda)
+        self._host.copy_(t, non_blocking=on_cuda)
+        self._ready = None
+        if on_cuda:
+            self._ready = torch.cuda.Event()
+            self._ready.record()
+        self._fresh = True
+
+
 class SampleCapacity:
     """Sample-buffer capacity of a training march: a Python int the host never waits for.
 
@@ -29,8 +65,7 @@ class SampleCapacity:
         self.quantum, self.headroom, self.shrink_below = int(quantum), headroom, shrink_below
         self.capacity: int | None = None  # None: size the next march exactly (one host read)
         self._max: torch.Tensor | None = None  # device running max of n_wanted
-        self._host: torch.Tensor | None = None  # its copy on the host, maybe in flight
-        self._ready: torch.cuda.Event | None = None
+        self._read = LaggedRead()  # its copy on the host, maybe in flight
 
     def size_for(self, wanted: int) -> int:
         """The capacity for a want of `wanted` samples: headroom, rounded up to the quantum."""
@@ -40,7 +75,7 @@ class SampleCapacity:
     def reset(self, wanted: int | None = None) -> None:
         """Forget the history; size from `wanted` (an exact count) or at the next march."""
         self.capacity = None if wanted is None else self.size_for(wanted)
-        self._max = self._host = self._ready = None
+        self._max, self._read = None, LaggedRead()
 
     def observe(self, n_wanted: torch.Tensor) -> None:
         """Fold a march's (1,) int32 device count into the running maximum (no host read)."""
@@ -51,23 +86,15 @@ class SampleCapacity:
 
     def refresh(self) -> None:
         """Apply the maximum copied at the previous call (if it has arrived), start a new copy."""
-        if self._max is None:
-            return
-        if self._host is not None and (self._ready is None or self._ready.query()):
-            wanted = int(self._host.item())
+        if self._max is None or self._read.busy():
+            return  # nothing seen yet, or the last copy is in flight: keep the maximum growing
+        got = self._read.take()
+        if got is not None:
+            wanted = int(got.item())
             if self.capacity is None or wanted > self.capacity / self.headroom:
                 self.capacity = self.size_for(wanted)
             elif wanted < self.shrink_below * self.capacity:
                 self.capacity = self.size_for(wanted)
-        elif self._host is not None:
-            return  # the last copy is still in flight: keep the maximum growing
-        on_cuda = self._max.device.type == "cuda"
-        if self._host is None:
-            self._host = torch.empty_like(self._max, device="cpu", pin_memory=on_cuda)
         # in stream order: copy the maximum since the last copy, then start a new one
-        self._host.copy_(self._max, non_blocking=on_cuda)
+        self._read.start(self._max)
         self._max.zero_()
-        self._ready = None
-        if on_cuda:
-            self._ready = torch.cuda.Event()
-            self._ready.record()

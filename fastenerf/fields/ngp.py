@@ -36,6 +36,7 @@ from ..kernels.raymarch_fixed import FixedSamples, empty_fixed_samples, march_ra
 from ..kernels.sh import sh_encode
 from .base import Field, RenderOutput, check_points, park_non_finite, view_cone_angle
 from .capacity import SampleCapacity
+from .compaction import CompactionSwitch
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
 # background shows through. On `blocks` (mean box side 1.22; CPU, 116×87, 2048 rays/step, 300
@@ -164,6 +165,9 @@ class NGPField(Field):
             step_size=opt.marcher.dt_min,
             device=device,
         )
+        self.compaction = None  # compaction_auto's switch (None: fixed by the options)
+        if opt.marcher.compaction_auto and self._compaction_set():
+            self.compaction = CompactionSwitch(opt.marcher.compact_below)
         self.to(device)
 
     # -- state ---------------------------------------------------------------------------
@@ -280,6 +284,8 @@ class NGPField(Field):
             rgb = self._radiance(geo, d)
         with record_function("composite"):
             out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
+        if train and self.compaction is not None:
+            self.compaction.observe(out["weights"], _n_used(marched))
         if bad is not None:  # a non-finite ray's pixel is NaN, so the step is skipped
             out["rgb"] = torch.where(bad, float("nan"), out["rgb"])
         res: RenderOutput = {
@@ -368,10 +374,14 @@ class NGPField(Field):
         cap.observe(fixed.n_wanted)
         return fixed
 
-    def _prunes(self) -> bool:
-        """Whether training compacts its marched samples (`MarcherOptions.early_stop_eps`)."""
+    def _compaction_set(self) -> bool:
         opt = self.options.marcher
         return opt.early_stop_eps > 0 or opt.alpha_threshold > 0
+
+    def _prunes(self) -> bool:
+        """Whether training compacts its marched samples now (`MarcherOptions.early_stop_eps`;
+        with `compaction_auto`, while the switch says it pays)."""
+        return self._compaction_set() and (self.compaction is None or self.compaction.on)
 
     def _prune(self, rays_o, rays_d, marched):
         """The marched samples a training step trains on: those still visible by the density
@@ -404,6 +414,9 @@ class NGPField(Field):
         for cap in (self.sample_capacity, self.pruned_capacity):
             if cap is not None:
                 cap.refresh()
+        if self.compaction is not None and self.compaction.refresh():
+            fixed = self.sample_capacity is not None  # a new state: its buffer sized anew
+            self.pruned_capacity = SampleCapacity() if fixed and self._prunes() else None
         with torch.no_grad():
             self.grid.update(
                 step,
