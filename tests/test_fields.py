@@ -20,6 +20,7 @@ from fastenerf.clip import cylinder_mask
 from fastenerf.config import CylinderConfig, TrainConfig
 from fastenerf.fields import field_from_config, make_field
 from fastenerf.fields import ngp as ngp_mod
+from fastenerf.fields.capacity import SampleCapacity
 from fastenerf.fields.ngp import trunc_exp
 from fastenerf.kernels.hashgrid import grid_indices
 
@@ -659,6 +660,10 @@ def test_ngp_compaction_auto_keeps_compacting_only_where_it_pays(make):
         assert ("n_marched" in out) is stays_on
         assert out["valid"].all() and all(torch.isfinite(v).all() for v in g.values())
         torch.testing.assert_close(out["rgb"], ref["rgb"], rtol=0, atol=1e-6)
+    # switched back on, its buffer not sized yet: still not the key of the step without it
+    off = f.graph_key()
+    f.compaction.on, f.pruned_capacity = True, SampleCapacity()
+    assert f.graph_key() != off
 
 
 def test_compaction_switch_hysteresis():

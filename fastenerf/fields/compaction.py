@@ -44,7 +44,7 @@ class CompactionSwitch:
         with torch.no_grad():
             if self._sums is None:
                 self._sums = torch.zeros(2, dtype=torch.float64, device=weights.device)
-            self._sums[0].add_((weights > 0).sum())
+            self._sums[0].add_(torch.count_nonzero(weights))
             self._sums[1].add_(n_marched)
 
     def refresh(self) -> bool:

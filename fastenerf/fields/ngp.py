@@ -339,8 +339,9 @@ class NGPField(Field):
         refinement's coarse-to-fine) change per step: (capacities, cone)."""
         if self.sample_capacity is None or self.level_weights is not None:
             return None
-        pruned = self.pruned_capacity
-        return (self.sample_capacity.capacity, pruned and pruned.capacity, self._train_cone())
+        pruned = self.pruned_capacity  # compacting or not is in the key even before sizing
+        cap = (self._prunes(), pruned and pruned.capacity)
+        return (self.sample_capacity.capacity, cap, self._train_cone())
 
     def use_fixed_capacity(self, on: bool) -> None:
         """March (and compact) training batches into fixed-capacity buffers (no host sync;
