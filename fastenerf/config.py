@@ -413,8 +413,10 @@ class TrainConfig:
     """Decoupled decay towards the given poses (a row the batch sees shrinks by pose lr x this):
     what the events hardly constrain (a slow drift along the trajectory) goes back."""
     estimate_threshold: bool = False
-    """Learn the contrast thresholds' ratio C_pos/C_neg jointly with the field (their product
-    stays at scene.json's: the common scale is not observable)."""
+    """Estimate the thresholds' ratio C_pos/C_neg (product kept: the scale is not observable)."""
+    threshold_ratio: Literal["auto", "loop", "learn"] = "auto"
+    """estimate_threshold's ratio: loop (counted over the closed loop, data/loop_ratio.py),
+    learn (with the field), auto (loop where the camera returns to its start pose)."""
     threshold_lr: float = 1e-3
     """Threshold learning rate (log units per step), following the field's lr schedule."""
     threshold_per_pixel: bool = False

@@ -100,16 +100,29 @@ class ScheduledEval(Hook):
         self.clock = None
 
     def on_start(self, trainer: Trainer) -> None:
-        self.pending = [t for t in self.pending if t > trainer.train_seconds]
+        # a target the clock passed is not taken late, except the last one of a run that
+        # resumes after its budget (its point lost to an interruption): taken at the end
+        last = self.pending[-1:] if trainer.done() else []
+        self.pending = [t for t in self.pending if t > trainer.train_seconds] or last
         self.clock = trainer.train_seconds
         if not self.pending:
             trainer.request_stop()
 
     def after_step(self, trainer: Trainer, stats: dict[str, Any]) -> None:
         self.acc.append(stats)  # values may still be on the device until the point
+        if self.pending and trainer.train_seconds >= self.pending[0]:
+            stats["eval_psnr"] = self._take(trainer)
+
+    def on_end(self, trainer: Trainer, summary: dict[str, Any]) -> None:
+        # The budget can be spent between two checks of this hook (another hook's checkpoint
+        # settles the clock past the last target): that target is taken now, not lost.
+        passed = self.pending and trainer.train_seconds >= self.pending[0]
+        if passed and trainer.failure is None and trainer.done():
+            summary["last_eval_psnr"] = self._take(trainer)
+
+    def _take(self, trainer: Trainer) -> float:
+        """Evaluate now for the targets the clock has passed; returns the point's PSNR."""
         train_s = trainer.train_seconds
-        if not self.pending or train_s < self.pending[0]:
-            return
         target = self.pending.pop(0)
         while self.pending and train_s >= self.pending[0]:  # one long step passed several
             target = self.pending.pop(0)
@@ -131,13 +144,13 @@ class ScheduledEval(Hook):
             "samples_per_step": sum(samples) / max(len(samples), 1),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
         }
-        stats["eval_psnr"] = metrics["psnr"]
         self._reset()
         self.clock = train_s
         self.on_point(point)
         if not self.pending:
             trainer.request_stop()
         trainer.save_checkpoint(finished=not self.pending)
+        return metrics["psnr"]
 
     @property
     def finished(self) -> bool:

@@ -21,6 +21,8 @@ import torch
 
 from .coarse_to_fine import set_encoding_window
 from .config import TrainConfig
+from .data.loop_ratio import scene_loop_ratio
+from .errors import InputError
 from .fields.base import Field
 from .pose_refine import PoseRefiner, RowAdam
 from .sampling import RayBatch, RaySampler
@@ -78,6 +80,7 @@ class SelfCalibration:
         thresholds: tuple[float, float],
         field: Field,
         true_c2w: torch.Tensor | None = None,
+        ratio: float | None = None,
     ):
         self.cfg, self.field = cfg, field
         self.poses: PoseRefiner | None = None
@@ -106,11 +109,13 @@ class SelfCalibration:
                 per_pixel=cfg.threshold_per_pixel,
                 free_scale=cfg.threshold_free_scale,
                 pixel_weight=cfg.threshold_pixel_weight,
+                ratio=ratio,
                 device=sampler.device,
             )
             params = [p for p in self.thresholds.parameters() if p.requires_grad]
-            groups.append({"params": params, "lr": cfg.threshold_lr, "name": "thresholds"})
-        if not (groups or self.pose_optimizer):
+            if params:  # a measured ratio, no per-pixel factors: nothing to learn
+                groups.append({"params": params, "lr": cfg.threshold_lr, "name": "thresholds"})
+        if not self.wanted(cfg):
             raise ValueError("SelfCalibration: neither refine_poses nor estimate_threshold is on")
         # torch's Adam takes no empty list: a placeholder group when row-adam has the poses.
         # Fused where the field's Adam is (the device-paced step): it skips on `found_inf`.
@@ -254,7 +259,8 @@ class SelfCalibration:
             out["thresholds"] = {
                 "start": {"pos": est.start[0], "neg": est.start[1]},
                 "estimate": {"pos": pos, "neg": neg, "ratio": pos / neg},
-                "learnt": "ratio and scale" if self.cfg.threshold_free_scale else "ratio",
+                "learnt": _learnt(self.cfg, est),
+                "measured_ratio": est.measured_ratio,
                 "per_pixel": est.pixel is not None,
             }
         if self.poses is not None:
@@ -295,6 +301,27 @@ class SelfCalibration:
         if self.pose_optimizer is not None:
             self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         self.skipped_steps = int(state.get("skipped_steps", 0))
+
+
+def measured_ratio(scene, cfg: TrainConfig) -> float | None:
+    """The ratio C₊/C₋ counted over the scene's closed loop where `threshold_ratio` asks for
+    it (loop; auto where the camera returns to its start pose), else None (learnt)."""
+    if not cfg.estimate_threshold or cfg.threshold_ratio == "learn":
+        return None
+    try:
+        loop = scene_loop_ratio(scene)
+    except InputError:
+        if cfg.threshold_ratio == "loop":
+            raise
+        return None
+    return loop.ratio
+
+
+def _learnt(cfg: TrainConfig, est: ThresholdEstimator) -> str:
+    """What of the thresholds was learnt with the field (config.json's record)."""
+    parts = [] if est.measured_ratio is not None else ["ratio"]
+    parts += ["scale"] * cfg.threshold_free_scale + ["per-pixel factors"] * (est.pixel is not None)
+    return " and ".join(parts) or "nothing (the ratio measured from the loop)"
 
 
 def _finite(obj: Any) -> Any:

@@ -45,7 +45,9 @@ class ThresholdEstimator(nn.Module):
     """Learnt C₊, C₋ (global, and optionally per pixel).
 
     c_pos, c_neg: start values (scene.json's); n_pix: sensor pixels (per-pixel factors);
-    per_pixel, free_scale: see the module docstring; pixel_weight: regulariser weight.
+    per_pixel, free_scale: see the module docstring; pixel_weight: regulariser weight;
+    ratio: a measured C₊/C₋ (`data/loop_ratio.py`): the ratio is set to it, product kept,
+    and not learnt (None: learnt from the start's ratio).
     """
 
     def __init__(
@@ -57,6 +59,7 @@ class ThresholdEstimator(nn.Module):
         per_pixel: bool = False,
         free_scale: bool = False,
         pixel_weight: float = 1.0,
+        ratio: float | None = None,
         device: str | torch.device = "cpu",
     ):
         super().__init__()
@@ -69,7 +72,14 @@ class ThresholdEstimator(nn.Module):
         self.register_buffer(
             "log_start", torch.tensor([math.log(c_pos), math.log(c_neg)], device=device)
         )
-        self.log_ratio = nn.Parameter(torch.zeros((), device=device))
+        if ratio is not None and not (math.isfinite(ratio) and ratio > 0):
+            raise InputError(f"threshold estimation: a measured ratio must be > 0, got {ratio}")
+        r0 = 0.0 if ratio is None else math.log(ratio) - math.log(c_pos / c_neg)
+        r0 = min(max(r0, -RATIO_MAX), RATIO_MAX)
+        self.measured_ratio = ratio
+        self.log_ratio = nn.Parameter(
+            torch.full((), r0, device=device), requires_grad=ratio is None
+        )
         self.log_scale = nn.Parameter(torch.zeros((), device=device), requires_grad=free_scale)
         self.pixel = None
         if per_pixel:

@@ -46,7 +46,7 @@ from .run import (
     write_progress,
 )
 from .sampling import RaySampler, WindowSampler
-from .self_calibration import SelfCalibration
+from .self_calibration import SelfCalibration, measured_ratio
 
 HISTORY_MAX = 100_000
 # Batches the sampler draws at once: its host cost per block is about that of one batch.
@@ -246,7 +246,8 @@ class Trainer:
         if true_c2w is not None:
             true_c2w = torch.as_tensor(true_c2w, device=self.device)
         thresholds = (sc.pos_threshold, sc.neg_threshold)
-        return SelfCalibration(self.cfg, self.sampler, thresholds, self.field, true_c2w)
+        ratio = measured_ratio(self.scene, self.cfg)
+        return SelfCalibration(self.cfg, self.sampler, thresholds, self.field, true_c2w, ratio)
 
     @property
     def rays_per_step_total(self) -> int:

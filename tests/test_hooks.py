@@ -92,3 +92,38 @@ def test_scheduled_eval_takes_points_and_stops(scene, tmp_path):
     assert all(p["psnr"] > 0 and p["step"] >= 1 for p in points)
     prog = json.loads((tmp_path / "run" / "progress.json").read_text())
     assert prog["step"] == summary["steps"]
+
+
+class _ClockJump(Hook):
+    """After step `at`, the clock jumps past the budget, as a checkpoint's settle of queued
+    device-paced steps does between ScheduledEval's check and the loop's `done()`."""
+
+    def __init__(self, at: int):
+        self.at = at
+
+    def after_step(self, trainer: Trainer, stats) -> None:
+        if trainer.step_count == self.at:
+            trainer.train_seconds += 3600.0
+
+
+def test_scheduled_eval_takes_the_last_point_when_the_budget_ends_between_checks(scene, tmp_path):
+    """The last target's point is taken at the end, not lost; a run that resumes after its
+    budget without that point (interrupted while taking it) takes it, and only it."""
+    from fastenerf.evaluate import make_eval_set
+
+    ev = make_eval_set(scene, 2, 0.25)
+    cfg = tiny_cfg(steps=None, minutes=30.0)  # a 1800 s budget the jump passes
+    points = []
+    trainer = Trainer(scene, cfg, tmp_path / "run")
+    sched = ScheduledEval(ev, [1200.0, 1800.0], points.append)
+    summary = trainer.run([sched, _ClockJump(at=3)])
+    assert [p["target_s"] for p in points] == [1800.0]  # 1200 passed in the same jump
+    assert sched.finished and summary["steps"] == 3 and not summary["interrupted"]
+    assert summary["last_eval_psnr"] == points[0]["psnr"] > 0
+    # the point lost: a resume past the budget takes it without a step
+    again = []
+    trainer = Trainer(scene, cfg, tmp_path / "run", resume=True)
+    sched = ScheduledEval(ev, [1200.0, 1800.0], again.append)
+    summary = trainer.run([sched])
+    assert [p["target_s"] for p in again] == [1800.0] and summary["steps"] == 3
+    assert again[0]["step"] == 3 and sched.finished

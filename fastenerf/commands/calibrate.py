@@ -76,6 +76,12 @@ def add_arguments(p) -> None:
         "'poses' (the poses' world, tilt and centre as fitted)",
     )
     p.add_argument(
+        "--threshold-ratio",
+        metavar="SCENE",
+        help="instead: count the contrast-threshold ratio C+/C- over SCENE's closed loop (the "
+        "camera back at its start pose) and write it to --out; what --estimate-threshold uses",
+    )
+    p.add_argument(
         "--method",
         choices=("lm", "adam"),
         default="lm",
@@ -102,6 +108,8 @@ def run(args) -> int:
     from ..config import SceneConfig
     from ..data.calibrate import fit_turntable, load_calibration_poses, write_calibration
 
+    if args.threshold_ratio:
+        return _threshold_ratio(args)
     outputs = _check_arguments(args)
     cfg = SceneConfig.load(args.scene) if args.scene else None
     if args.lens_only:
@@ -186,6 +194,25 @@ def _check_arguments(args) -> dict:
         folder = scene.parent if scene.is_file() else scene
         claim_output(folder, SCENE_UPDATE, force=None, flag="--scene")
     return outputs
+
+
+def _threshold_ratio(args) -> int:
+    """--threshold-ratio SCENE: the ratio counted over its loop, printed and written to --out."""
+    from ..data.formats import load_any
+    from ..data.loop_ratio import scene_loop_ratio
+    from ..errors import InputError
+    from ..io import write_json
+
+    if args.poses or args.chequerboard:
+        raise InputError("--threshold-ratio SCENE takes no POSES.npz or --chequerboard")
+    _check_writable(args.out, "--out")
+    scene = load_any(args.threshold_ratio)
+    loop = scene_loop_ratio(scene)
+    print(loop.summary(scene.config.neg_threshold))
+    out = {**dataclasses.asdict(loop), "scene": str(args.threshold_ratio)}
+    out["pos_at_scene_neg"] = loop.ratio * scene.config.neg_threshold
+    print(f"wrote {write_json(args.out, out)}")
+    return 0
 
 
 def _check_writable(path, what: str) -> None:
