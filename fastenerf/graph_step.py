@@ -49,34 +49,44 @@ class _Static:
     target: torch.Tensor  # (B,) float32
     channel: torch.Tensor | None  # (B,) int64 or None (mono)
     jitter: torch.Tensor  # (2B,) float32 uniform [0, 1) march offsets
+    # with thresholds applied in the step (a measured ratio, nothing learnt): (B, 2), (B,)
+    parts: torch.Tensor | None = None
+    pix: torch.Tensor | None = None
 
     @classmethod
     def like(cls, batch: RayBatch) -> _Static:
-        ch = batch.channel
+        def like(t):
+            return None if t is None else torch.empty_like(t)
+
+        with_parts = batch.parts is not None
         return cls(
             torch.empty_like(batch.rays_o),
             torch.empty_like(batch.rays_d),
             torch.empty_like(batch.target),
-            None if ch is None else torch.empty_like(ch),
+            like(batch.channel),
             torch.empty(len(batch.rays_o), device=batch.rays_o.device),
+            like(batch.parts),
+            like(batch.pix) if with_parts else None,
         )
 
     def fill(self, batch: RayBatch) -> RayBatch:
         """Copy `batch` in; returns a RayBatch whose tensors are these buffers."""
-        self.rays_o.copy_(batch.rays_o)
-        self.rays_d.copy_(batch.rays_d)
-        self.target.copy_(batch.target)
-        if self.channel is not None:
-            self.channel.copy_(batch.channel)
-        torch.rand(len(self.jitter), out=self.jitter)  # the device path's draw, same order
         fields = dict(rays_o=self.rays_o, rays_d=self.rays_d, target=self.target)
-        return RayBatch(**{**batch.__dict__, **fields, "channel": self.channel})
+        fields.update(channel=self.channel)
+        if self.parts is not None:
+            fields.update(parts=self.parts, pix=self.pix)
+        for k, buf in fields.items():
+            if buf is not None:
+                buf.copy_(getattr(batch, k))
+        torch.rand(len(self.jitter), out=self.jitter)  # the device path's draw, same order
+        return RayBatch(**{**batch.__dict__, **fields})
 
 
 def batch_key(batch: RayBatch) -> tuple:
     """The shapes a graph of this batch bakes in."""
     ch = batch.channel
-    return (tuple(batch.rays_o.shape), tuple(batch.target.shape), None if ch is None else ch.dtype)
+    shapes = (tuple(batch.rays_o.shape), tuple(batch.target.shape), batch.parts is not None)
+    return (*shapes, None if ch is None else ch.dtype)
 
 
 class GraphedStep:

@@ -129,6 +129,11 @@ class SelfCalibration:
         self.skipped_steps = 0  # steps whose gradients were not finite
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
 
+    @property
+    def static(self) -> bool:
+        """Nothing learnt: thresholds with a measured ratio only (a graphed step replays it)."""
+        return self.poses is None and not any(p.requires_grad for p in self.parameters())
+
     @classmethod
     def wanted(cls, cfg: TrainConfig) -> bool:
         return bool(cfg.refine_poses or cfg.estimate_threshold)

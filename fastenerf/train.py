@@ -227,7 +227,8 @@ class Trainer:
         if hasattr(self.field, "use_fixed_capacity"):  # no host read of the sample count
             self.field.use_fixed_capacity(self.step_mode == "device")
         lr_as_floats(self.optimizer)
-        if want == "graph" and self.step_mode == "device" and self.selfcal is None:
+        static = self.selfcal is None or self.selfcal.static  # no schedule a graph would bake
+        if want == "graph" and self.step_mode == "device" and static:
             if self.field.graph_key() is not None:
                 lr_as_tensors(self.optimizer, self.device)
                 self.graph = GraphedStep(self._graph_body, self.field, self.device, capture)

@@ -118,3 +118,20 @@ def test_graph_body_follows_the_compaction_switch_on_the_cpu(scene, tmp_path):
     for t in (plain, graph):
         assert t.field.compaction.switches == 1 and not t.field.compaction.on
         assert "marched_per_ray" in t.history[0] and "marched_per_ray" not in t.history[-1]
+
+
+def test_graph_body_applies_a_measured_threshold_ratio_on_the_cpu(scene, tmp_path):
+    """estimate_threshold with the ratio counted over the loop learns nothing per step, so the
+    step stays graphed (its batch's polarity parts in static buffers) and takes the plain
+    path's steps; a learnt ratio keeps the device step."""
+    kw = dict(steps=6, estimate_threshold=True)
+    plain = make(scene, tmp_path / "plain", "plain", **kw)
+    a = losses(plain, 6)
+    graph = make(scene, tmp_path / "graph", "graph", **kw)
+    assert graph.selfcal.static and graph.step_mode == "graph"
+    assert graph.selfcal.thresholds.measured_ratio is not None
+    assert losses(graph, 6) == a
+    static = graph.graph._static  # what a captured replay reads: this step's parts, not stale
+    assert static.parts is not None and static.pix is not None
+    learnt = make(scene, tmp_path / "learnt", "device", **kw, threshold_ratio="learn")
+    assert learnt.set_step_mode("graph") == "device"
