@@ -236,3 +236,27 @@ def set_option(name: str, d: dict | None, key: str, value: Any) -> dict:
     else:
         out[key] = value
     return out
+
+
+# Compaction where it pays, on CUDA (measured on every built-in scene and a mesh scene of ours,
+# benchmarks/RESULTS.md); the CPU preset's runs are not measured with it and keep it off.
+COMPACTION_KEYS = ("early_stop_eps", "alpha_threshold", "compaction_auto")
+GPU_COMPACTION = {"early_stop_eps": 1e-4, "compaction_auto": True}
+
+
+def ngp_marching_defaults(opts: dict | None, cone: float, device: str) -> dict:
+    """ngp's options with the marching defaults a new run writes into its config (so a resume
+    marches alike): `cone` unless cone_angle is set; on CUDA (`device` cuda[:N], or auto with
+    a GPU) compaction_auto unless an option of compaction is set."""
+    out = dict(opts or {})
+    if get_option("ngp", out, "cone_angle") is None:
+        out = set_option("ngp", out, "cone_angle", cone)
+    cuda = device.startswith("cuda")
+    if device == "auto":
+        import torch
+
+        cuda = torch.cuda.is_available()
+    if cuda and all(get_option("ngp", out, k) is None for k in COMPACTION_KEYS):
+        for k, v in GPU_COMPACTION.items():
+            out = set_option("ngp", out, k, v)
+    return out

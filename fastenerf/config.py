@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from . import backends
-from .backends import BACKEND_NAMES, get_option, parse_options
+from .backends import BACKEND_NAMES, parse_options
 from .cpu_preset import NGP_CPU_RAYS, ngp_cpu_options
 from .errors import InputError
 from .perturb_config import PerturbConfig
@@ -588,12 +588,10 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
         cfg.lr_final = cfg.lr * ratio
     if overrides.get("minutes") is not None and overrides.get("steps") is None:
         cfg.steps = None  # a time budget replaces the preset's step count
-    if backend == "ngp" and get_option(backend, cfg.backend_options, "cone_angle") is None:
-        # written into the run's config, so a resume with another budget keeps the same marching
-        cfg.backend_options = {
-            **(cfg.backend_options or {}),
-            "cone_angle": ngp_cone_for_budget(cfg.minutes, cfg.steps),
-        }
+    if backend == "ngp":  # written into the run's config: a resume marches alike
+        cone = ngp_cone_for_budget(cfg.minutes, cfg.steps)
+        opts = backends.ngp_marching_defaults(cfg.backend_options, cone, str(cfg.device))
+        cfg.backend_options = opts
     return cfg.validate()
 
 

@@ -685,3 +685,22 @@ def test_compaction_switch_hysteresis():
     assert feed(0.72) and sw.on  # 0.6 read: on
     assert not feed(0.72) and sw.on  # 0.72 read: inside the band, stays on
     assert sw.switches == 2
+
+
+def test_new_gpu_runs_compact_where_it_pays_cpu_runs_do_not():
+    """The preset writes compaction_auto into a new CUDA run's options (and the cone into
+    every run's), never over an option of compaction the user set, flat or by section."""
+    from fastenerf.backends import ngp_marching_defaults
+    from fastenerf.config import train_preset
+
+    gpu = ngp_marching_defaults({}, 0.0, "cuda:1")
+    assert gpu == {"cone_angle": 0.0, "early_stop_eps": 1e-4, "compaction_auto": True}
+    assert ngp_marching_defaults({}, 0.0, "cpu") == {"cone_angle": 0.0}
+    mine = {"marcher": {"early_stop_eps": 0.0}}
+    assert ngp_marching_defaults(mine, 0.5, "cuda") == {
+        "marcher": {"early_stop_eps": 0.0, "cone_angle": 0.5}
+    }
+    assert ngp_marching_defaults({"alpha_threshold": 0.01}, 0.0, "cuda")["alpha_threshold"] == 0.01
+    cfg = train_preset("fast", "ngp", device="cuda", minutes=1.0)
+    assert cfg.backend_options["compaction_auto"] is True
+    assert "compaction_auto" not in train_preset("fast", "ngp", device="cpu").backend_options
