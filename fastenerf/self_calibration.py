@@ -208,7 +208,8 @@ class SelfCalibration:
                 return False
         elif self.optimizer.defaults.get("fused"):  # None: the placeholder, nothing to skip
             self.optimizer.found_inf, self.optimizer.grad_scale = found_inf, None
-        self.optimizer.step()
+        if self.optimizer.defaults.get("fused") is not None:  # not the empty placeholder,
+            self.optimizer.step()  # whose unfused step a CUDA graph could not capture
         decay = self.cfg.refine_decay if self.poses is not None else 0.0
         if self._row_adam_steps():  # the row Adam decays the rows it steps, in its launch
             self.pose_optimizer.step(self._seen, found_inf=found_inf, decay=decay)

@@ -77,6 +77,7 @@ class ThresholdEstimator(nn.Module):
         r0 = 0.0 if ratio is None else math.log(ratio) - math.log(c_pos / c_neg)
         r0 = min(max(r0, -RATIO_MAX), RATIO_MAX)
         self.measured_ratio = ratio
+        self.register_buffer("sign", torch.tensor([0.5, -0.5], device=device))
         self.log_ratio = nn.Parameter(
             torch.full((), r0, device=device), requires_grad=ratio is None
         )
@@ -88,8 +89,8 @@ class ThresholdEstimator(nn.Module):
 
     def _log_global(self) -> torch.Tensor:
         """(2,) log C₊, log C₋ before clamping."""
-        sign = self.log_start.new_tensor([0.5, -0.5])
-        return self.log_start + self.log_scale + sign * self.log_ratio
+        # a buffer, not a tensor made per call: a captured step may not copy from the host
+        return self.log_start + self.log_scale + self.sign * self.log_ratio
 
     def thresholds(self, pix: torch.Tensor | None = None) -> torch.Tensor:
         """C₊, C₋: (2,) global, or (B, 2) at flat pixels `pix` (B,) with per-pixel factors."""

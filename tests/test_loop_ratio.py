@@ -102,3 +102,27 @@ def test_training_uses_the_loop_ratio_and_records_it(uneven, tmp_path):
     assert th["measured_ratio"] == pytest.approx(0.6, rel=0.1)
     assert th["estimate"]["ratio"] == pytest.approx(th["measured_ratio"], rel=1e-5)
     assert th["learnt"].startswith("nothing")
+
+
+def test_a_measured_ratio_step_has_nothing_a_cuda_graph_cannot_capture(
+    uneven, tmp_path, monkeypatch
+):
+    """What broke the capture on the GPU, checked on the CPU: the thresholds made a tensor from
+    host values per call (a copy from the host), and the empty placeholder Adam stepped (torch
+    refuses to capture an unfused, non-capturable step)."""
+    from fastenerf.train import Trainer
+    from tests.test_train import tiny_cfg
+
+    trainer = Trainer(
+        load_scene(uneven), tiny_cfg("ngp", steps=2, estimate_threshold=True), tmp_path / "run"
+    )
+    sc = trainer.selfcal
+    assert sc.static
+
+    def refuse(*a, **k):
+        raise AssertionError("not capturable")
+
+    monkeypatch.setattr(torch.Tensor, "new_tensor", refuse)
+    monkeypatch.setattr(sc.optimizer, "step", refuse)
+    sc.thresholds.thresholds()
+    assert sc.step(found_inf=torch.zeros(()))
