@@ -30,6 +30,7 @@ How a command recognises its own kind of output (`OutputKind.recognise`):
 | mesh        | file named `.ply`, `.glb` or `.obj`                                         |
 | image       | file named `.png`, `.jpg`, `.jpeg` or `.gif`                                |
 | calibration | JSON object with "trajectory" and "solver" (what `calibrate` writes)        |
+| threshold   | JSON object with "ratio", "n_pos", "n_neg" (`calibrate --threshold-ratio`)  |
 
 An empty folder is every folder kind. Outputs of the same kind are replaced atomically by
 the writers (`fastenerf.io.atomic_dir` / `atomic_path`): scene folders whole (so an old
@@ -200,6 +201,11 @@ def _calibration(p: Path) -> bool:
     return "trajectory" in d and "solver" in d
 
 
+def _threshold_ratio(p: Path) -> bool:
+    d = _json_object(p)
+    return "ratio" in d and "n_pos" in d and "n_neg" in d
+
+
 def _json_object(path: Path) -> dict:
     try:
         d = json.loads(path.read_text())
@@ -232,3 +238,4 @@ EVENTS = OutputKind("events file", False, _events)
 MESH = OutputKind("mesh file", False, _suffix(".ply", ".glb", ".obj"))
 IMAGE = OutputKind("image file", False, _suffix(".png", ".jpg", ".jpeg", ".gif"))
 CALIBRATION = OutputKind("calibration file", False, _calibration)
+THRESHOLD_RATIO = OutputKind("threshold-ratio file", False, _threshold_ratio)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 
 import numpy as np
 import pytest
@@ -69,6 +70,27 @@ def test_loop_ratio_refuses_a_path_that_does_not_close(uneven, tmp_path):
     assert not out.exists()
     assert cli_main(["calibrate", "--threshold-ratio", str(uneven), "--out", str(out)]) == 0
     assert json.loads(out.read_text())["ratio"] == pytest.approx(0.6, rel=0.1)
+    # its own file is replaced; a path that is something else, or cannot be written, is not
+    assert cli_main(["calibrate", "--threshold-ratio", str(uneven), "--out", str(out)]) == 0
+    notes = tmp_path / "notes.json"
+    notes.write_text('{"mine": 1}')
+    assert cli_main(["calibrate", "--threshold-ratio", str(uneven), "--out", str(notes)]) == 2
+    assert notes.read_text() == '{"mine": 1}'
+    ro = tmp_path / "ro"
+    ro.mkdir(mode=0o500)
+    if not os.access(ro, os.W_OK):  # root writes anywhere
+        assert (
+            cli_main(["calibrate", "--threshold-ratio", str(uneven), "--out", str(ro / "r.json")])
+            == 2
+        )
+    # a training run asked for the loop on a path that does not close: one line, no run made
+    run = tmp_path / "run"
+    args = ["train", str(half), "--out", str(run), "--steps", "2", "--device", "cpu"]
+    assert cli_main(args + ["--estimate-threshold", "--threshold-ratio", "loop"]) == 2
+    assert not run.exists()
+    with pytest.raises(SystemExit) as bad:  # argparse's own one line
+        cli_main(args + ["--threshold-ratio", "sometimes"])
+    assert bad.value.code == 2 and not run.exists()
 
 
 def test_a_measured_ratio_is_set_and_kept_with_the_product():

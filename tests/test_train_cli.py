@@ -72,6 +72,8 @@ def test_help_lists_every_training_knob_with_its_docstring(capsys):
             ["--options", '{"early_stop_eps": -1}'],
             "'marcher.early_stop_eps' must be in [0, 1], got -1",
         ),
+        (["--options", '{"compact_below": 2}'], "'marcher.compact_below' must be in [0, 1]"),
+        (["--options", '{"compaction_auto": "yes"}'], "'marcher.compaction_auto' must be true"),
         (["--options", '{"win_max": 10}'], "'win_max' is a training option, not a backend option"),
         (["--options", "[1]"], "--options must be a JSON object"),
         (["--cone-angle", "-1"], "'marcher.cone_angle' must be in [0, 1]"),

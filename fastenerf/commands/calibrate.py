@@ -202,10 +202,13 @@ def _threshold_ratio(args) -> int:
     from ..data.loop_ratio import scene_loop_ratio
     from ..errors import InputError
     from ..io import write_json
+    from ..outputs import THRESHOLD_RATIO, claim_output
 
-    if args.poses or args.chequerboard:
-        raise InputError("--threshold-ratio SCENE takes no POSES.npz or --chequerboard")
-    _check_writable(args.out, "--out")
+    if args.poses or args.chequerboard or args.scene or args.plot:
+        raise InputError(
+            "--threshold-ratio SCENE takes no POSES.npz, --chequerboard, --scene or --plot"
+        )
+    claim_output(args.out, THRESHOLD_RATIO, force=args.force)
     scene = load_any(args.threshold_ratio)
     loop = scene_loop_ratio(scene)
     print(loop.summary(scene.config.neg_threshold))
