@@ -126,6 +126,7 @@ class SelfCalibration:
             eps=ADAM_EPS,
             fused=fused if groups else None,
         )
+        self._placeholder = not groups  # the optimiser holds no parameter
         self.skipped_steps = 0  # steps whose gradients were not finite
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
 
@@ -208,8 +209,8 @@ class SelfCalibration:
                 return False
         elif self.optimizer.defaults.get("fused"):  # None: the placeholder, nothing to skip
             self.optimizer.found_inf, self.optimizer.grad_scale = found_inf, None
-        if self.optimizer.defaults.get("fused") is not None:  # not the empty placeholder,
-            self.optimizer.step()  # whose unfused step a CUDA graph could not capture
+        if not self._placeholder:  # whose unfused step a CUDA graph could not capture
+            self.optimizer.step()
         decay = self.cfg.refine_decay if self.poses is not None else 0.0
         if self._row_adam_steps():  # the row Adam decays the rows it steps, in its launch
             self.pose_optimizer.step(self._seen, found_inf=found_inf, decay=decay)

@@ -77,7 +77,9 @@ class ThresholdEstimator(nn.Module):
         r0 = 0.0 if ratio is None else math.log(ratio) - math.log(c_pos / c_neg)
         r0 = min(max(r0, -RATIO_MAX), RATIO_MAX)
         self.measured_ratio = ratio
-        self.register_buffer("sign", torch.tensor([0.5, -0.5], device=device))
+        # not saved: a constant (and checkpoints made before it load as they are)
+        sign = torch.tensor([0.5, -0.5], device=device)
+        self.register_buffer("sign", sign, persistent=False)
         self.log_ratio = nn.Parameter(
             torch.full((), r0, device=device), requires_grad=ratio is None
         )

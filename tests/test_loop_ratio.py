@@ -101,6 +101,7 @@ def test_a_measured_ratio_is_set_and_kept_with_the_product():
     assert float(c[0] / c[1]) == pytest.approx(0.6, rel=1e-6)
     assert float(c[0] * c[1]) == pytest.approx(0.0625, rel=1e-6)
     assert not est.log_ratio.requires_grad
+    assert "sign" not in est.state_dict()  # a constant: checkpoints from before it still load
     assert [p for p in est.parameters() if p.requires_grad] == []
     parts = torch.tensor([[1.0, 0.0], [0.0, -1.0]])
     assert torch.isfinite(est.target(parts, torch.tensor([0, 1]))).all()

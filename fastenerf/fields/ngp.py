@@ -347,7 +347,7 @@ class NGPField(Field):
         """March (and compact) training batches into fixed-capacity buffers (no host sync;
         `capacity.py`) or into exactly sized ones (the host reads the counts)."""
         self.sample_capacity = SampleCapacity() if on else None
-        self.pruned_capacity = SampleCapacity() if on and self._prunes() else None
+        self.pruned_capacity = self._new_pruned_capacity()
         self._capacity_cone = None
 
     def _march_fixed(self, rays_o, rays_d, cone: float, march: dict):
@@ -374,6 +374,10 @@ class NGPField(Field):
         )
         cap.observe(fixed.n_wanted)
         return fixed
+
+    def _new_pruned_capacity(self) -> SampleCapacity | None:
+        """The compacted samples' buffer: with fixed capacity, while compacting."""
+        return SampleCapacity() if self.sample_capacity is not None and self._prunes() else None
 
     def _compaction_set(self) -> bool:
         opt = self.options.marcher
@@ -416,8 +420,7 @@ class NGPField(Field):
             if cap is not None:
                 cap.refresh()
         if self.compaction is not None and self.compaction.refresh():
-            fixed = self.sample_capacity is not None  # a new state: its buffer sized anew
-            self.pruned_capacity = SampleCapacity() if fixed and self._prunes() else None
+            self.pruned_capacity = self._new_pruned_capacity()  # sized anew at the next batch
         with torch.no_grad():
             self.grid.update(
                 step,
