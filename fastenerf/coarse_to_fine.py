@@ -8,6 +8,8 @@ gets weight w_k(α) = (1 − cos(π · clamp(α − k, 0, 1))) / 2 as α grows o
 - vanilla: the positional encoding's frequency bands (the raw x is always kept), α 0 → bands.
 A field takes the weights as an attribute (`NGPField.level_weights`,
 `PositionalEncoding.band_weights`); None means every level at full weight (no multiply).
+While the schedule runs the attribute keeps one tensor whose values change in place, so a
+captured training step (`graph_step`) reads each step's weights.
 The weights act on the field's features (BARF, mode "field") or only on the gradient w.r.t.
 the positions, the pose gradient's path (mode "gradient": the field learns every level from
 the start; `fastenerf.fields.level_weights`).
@@ -64,16 +66,27 @@ def set_encoding_window(
     r = schedule_fraction(progress, start, end)
     if field.backend == "ngp":
         n = field.grid_cfg.n_levels
-        field.level_weights = None if r is None else cosine_window(1 + r * (n - 1), n, _dev(field))
+        w = None if r is None else cosine_window(1 + r * (n - 1), n, _dev(field))
+        field.level_weights = _in_place(field.level_weights, w)
         field.level_weights_mode = mode
     elif field.backend == "vanilla":
         n = len(field.pos_enc.freqs)
         w = None if r is None else cosine_window(r * n, n, _dev(field))
-        field.pos_enc.band_weights = w
+        field.pos_enc.band_weights = _in_place(field.pos_enc.band_weights, w)
         field.pos_enc.band_weights_mode = mode
     else:
         return None
     return r
+
+
+def _in_place(current: torch.Tensor | None, w: torch.Tensor | None) -> torch.Tensor | None:
+    """The weights `w` in the field's own tensor: `current` filled (a graph replays what it
+    reads), a copy where there is none yet (`cosine_window`'s are cached and shared)."""
+    if w is None:
+        return None
+    if current is None or current.shape != w.shape or current.device != w.device:
+        return w.clone()
+    return current.copy_(w)
 
 
 def _dev(field: Field) -> torch.device:

@@ -8,10 +8,12 @@ finite-loss guard and the fused Adam update are captured once into a CUDA graph 
 - **Static inputs.** The batch is copied into buffers the graph reads (`_Static`); the ray
   jitter is drawn into one too, outside the graph, from the same generator and in the same order
   as the device path draws it, so both paths take the same steps.
-- **Learning rate** as device tensors the fused Adam reads (`optim.lr_as_tensors`), filled in
-  place before each replay.
-- **What the graph bakes in** is the field's `graph_key()` (the fixed sample buffers' capacities,
-  the march's cone) and the batch shape; when it changes (the capacity follows the scene's
+- **Learning rates** as device tensors the fused Adam and the pose rows' Adam read
+  (`optim.lr_as_tensors`, `RowAdam.lr_as_tensors`), filled in place before each replay, as are
+  pose refinement's coarse-to-fine level weights (`coarse_to_fine`).
+- **What the graph bakes in** is the field's `graph_key()` (the fixed sample buffers'
+  capacities, the march's cone, whether level weights apply), the self-calibration's (whether
+  the poses step) and the batch shape; when it changes (the capacity follows the scene's
   carving), the step runs eagerly for `WARMUP` steps on a side stream and is captured again.
 - **Stats** are one stacked vector the graph writes; each step's copy of it goes to the
   trainer's pending stats, so nothing reads the device per step.
@@ -29,6 +31,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .optim import lr_as_tensors
 from .sampling import RayBatch
 
 # Eager steps with an unchanged key before a capture (torch's rule: warm up on a side stream so
@@ -49,9 +52,12 @@ class _Static:
     target: torch.Tensor  # (B,) float32
     channel: torch.Tensor | None  # (B,) int64 or None (mono)
     jitter: torch.Tensor  # (2B,) float32 uniform [0, 1) march offsets
-    # with thresholds applied in the step (a measured ratio, nothing learnt): (B, 2), (B,)
+    # with thresholds applied in the step: (B, 2), (B,)
     parts: torch.Tensor | None = None
     pix: torch.Tensor | None = None
+    # with pose refinement: (B, 3) camera-frame directions, (2B,) int64 grid rows
+    dirs: torch.Tensor | None = None
+    pose_idx: torch.Tensor | None = None
 
     @classmethod
     def like(cls, batch: RayBatch) -> _Static:
@@ -67,6 +73,8 @@ class _Static:
             torch.empty(len(batch.rays_o), device=batch.rays_o.device),
             like(batch.parts),
             like(batch.pix) if with_parts else None,
+            like(batch.dirs) if batch.pose_idx is not None else None,
+            like(batch.pose_idx),
         )
 
     def fill(self, batch: RayBatch) -> RayBatch:
@@ -75,6 +83,8 @@ class _Static:
         fields.update(channel=self.channel)
         if self.parts is not None:
             fields.update(parts=self.parts, pix=self.pix)
+        if self.pose_idx is not None:
+            fields.update(dirs=self.dirs, pose_idx=self.pose_idx)
         for k, buf in fields.items():
             if buf is not None:
                 buf.copy_(getattr(batch, k))
@@ -86,19 +96,43 @@ def batch_key(batch: RayBatch) -> tuple:
     """The shapes a graph of this batch bakes in."""
     ch = batch.channel
     shapes = (tuple(batch.rays_o.shape), tuple(batch.target.shape), batch.parts is not None)
-    return (*shapes, None if ch is None else ch.dtype)
+    return (*shapes, batch.pose_idx is not None, None if ch is None else ch.dtype)
+
+
+def graphed_step(
+    body: StepBody, field, optimizer, calibration, device: torch.device, capture: bool | None
+) -> GraphedStep | None:
+    """A `GraphedStep` of `body` where the step can be captured (the field has a `graph_key`,
+    the self-calibration, if any, is `capturable`), with the field's and the calibration's
+    learning rates made device tensors; None, every lr left as it was, where it cannot."""
+    if field.graph_key() is None or not (calibration is None or calibration.capturable):
+        return None
+    lr_as_tensors(optimizer, device)
+    if calibration is not None:
+        calibration.lr_as_tensors(device)
+    return GraphedStep(body, field, device, capture, calibration)
 
 
 class GraphedStep:
     """Runs `body` on static copies of each batch, replayed from a CUDA graph where it can.
 
     body: see `StepBody`; field: the trained field (its `graph_key()` and `train_jitter`);
-    capture: capture graphs (default: on CUDA). Attributes: captures (graphs captured so far),
-    failure (why capture was given up, or None), replays (steps replayed).
+    capture: capture graphs (default: on CUDA); calibration: the run's `SelfCalibration` or
+    None (its `graph_key()` joins the field's, its parameters' gradients are the graph's too).
+    Attributes: captures (graphs captured so far), failure (why capture was given up, or None),
+    replays (steps replayed).
     """
 
-    def __init__(self, body: StepBody, field, device: torch.device, capture: bool | None = None):
+    def __init__(
+        self,
+        body: StepBody,
+        field,
+        device: torch.device,
+        capture: bool | None = None,
+        calibration=None,
+    ):
         self.body, self.field, self.device = body, field, torch.device(device)
+        self.calibration = calibration
         self.capture = self.device.type == "cuda" if capture is None else bool(capture)
         self.captures = self.replays = 0
         self.failure: str | None = None
@@ -113,7 +147,8 @@ class GraphedStep:
         """One training step on `batch`. Returns (out, loss, parts) as the device path's
         `_forward` + update would, but with every tensor value a copy that later steps leave
         alone: out holds "n_samples" (and "n_marched") only."""
-        key = (batch_key(batch), self.field.graph_key())
+        cal = () if self.calibration is None else self.calibration.graph_key()
+        key = (batch_key(batch), self.field.graph_key(), cal)
         if key != self._key:
             if self._key is None or key[0] != self._key[0]:
                 self._static = None  # another batch shape: new buffers
@@ -178,7 +213,8 @@ class GraphedStep:
         self._warm = 0
 
     def _graph_params(self):
-        return [p for p in self.field.parameters() if p.grad is not None]
+        extra = [] if self.calibration is None else self.calibration.parameters()
+        return [p for p in (*self.field.parameters(), *extra) if p.grad is not None]
 
     @staticmethod
     def _snapshot(out: dict, loss: torch.Tensor, parts: dict) -> tuple[dict, torch.Tensor, dict]:

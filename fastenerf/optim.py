@@ -81,11 +81,15 @@ def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     """Each group's learning rate = lr × its "lr_scale" (default 1); a tensor learning rate (one
     a captured step reads, `lr_as_tensors`) is filled in place, without a host wait."""
     for g in optimizer.param_groups:
-        value = lr * g.get("lr_scale", 1.0)
-        if torch.is_tensor(g["lr"]):
-            g["lr"].fill_(value)
-        else:
-            g["lr"] = value
+        set_group_lr(g, lr * g.get("lr_scale", 1.0))
+
+
+def set_group_lr(group: dict, value: float) -> None:
+    """One group's learning rate; a tensor one (`lr_as_tensors`) is filled in place."""
+    if torch.is_tensor(group["lr"]):
+        group["lr"].fill_(value)
+    else:
+        group["lr"] = value
 
 
 def lr_as_tensors(optimizer: torch.optim.Optimizer, device: torch.device) -> None:

@@ -234,6 +234,13 @@ class RowAdam(torch.optim.Optimizer):
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
         self.fused = fused  # one Warp launch per float32 parameter (`kernels.pose_rays`)
 
+    def lr_as_tensors(self, device: torch.device) -> None:
+        """Each group's lr a (1,) float32 tensor on `device` that the step kernel reads: a
+        captured step replays the value `optim.set_group_lr` fills in before it (undo:
+        `optim.lr_as_floats`)."""
+        for g in self.param_groups:
+            g["lr"] = torch.full((1,), float(g["lr"]), dtype=torch.float32, device=device)
+
     @torch.no_grad()
     def step(
         self,
@@ -242,7 +249,9 @@ class RowAdam(torch.optim.Optimizer):
         found_inf=None,
         decay: float = 0.0,
     ):  # noqa: D102
-        """rows: (G,) bool, the rows to step (None: every row with a gradient); found_inf:
+        """A group's lr is a float or a 1-element float32 tensor on the parameters' device
+        (`lr_as_tensors`: what a captured step reads). rows: (G,) bool, the rows to step (None:
+        every row with a gradient); found_inf:
         optional 0-dim device flag (non-zero: step no row, as torch's fused Adam skips);
         decay: decoupled decay (AdamW's, after the Adam update): each row stepped is then
         multiplied by 1 − min(1, lr · decay); 0: none. A parameter without a gradient is
@@ -288,10 +297,12 @@ class RowAdam(torch.optim.Optimizer):
         st["row_steps"].copy_(t)
         tc = t.clamp_min(1.0)  # unseen rows that never stepped: kept by the select
         m_hat, v_hat = m / (1 - b1**tc), v / (1 - b2**tc)
-        update = group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
+        lr = group["lr"]
+        lr = lr.to(p.device, p.dtype).reshape(()) if torch.is_tensor(lr) else lr
+        update = lr * m_hat / (v_hat.sqrt() + group["eps"])
         p.sub_(torch.where(s, update, torch.zeros_like(update)))
         if decay > 0:  # the ops `SelfCalibration._decay_poses` ran after the step, in order
-            rate = min(1.0, group["lr"] * decay)
+            rate = (lr * decay).clamp(max=1.0) if torch.is_tensor(lr) else min(1.0, lr * decay)
             p.mul_(1.0 - rate * s.to(p.dtype))
 
 

@@ -24,6 +24,7 @@ from .config import TrainConfig
 from .data.loop_ratio import scene_loop_ratio
 from .errors import InputError
 from .fields.base import Field
+from .optim import lr_as_floats, lr_as_tensors, set_group_lr
 from .pose_refine import PoseRefiner, RowAdam
 from .sampling import RayBatch, RaySampler
 from .threshold import ThresholdEstimator
@@ -129,11 +130,40 @@ class SelfCalibration:
         self._placeholder = not groups  # the optimiser holds no parameter
         self.skipped_steps = 0  # steps whose gradients were not finite
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
+        self.pose_lr_now = 0.0  # this step's pose lr, on the host (the device may hold a copy)
 
     @property
     def static(self) -> bool:
-        """Nothing learnt: thresholds with a measured ratio only (a graphed step replays it)."""
+        """Nothing learnt: thresholds with a measured ratio only."""
         return self.poses is None and not any(p.requires_grad for p in self.parameters())
+
+    @property
+    def capturable(self) -> bool:
+        """Whether a CUDA graph can replay the step: every learning rate a device tensor
+        (`lr_as_tensors`), the pose rows stepped by the row Adam (which reads its lr and
+        decay on the device; plain Adam's decay is a host-side rate), and a fused Adam for the
+        thresholds (it skips on the device's non-finite flag)."""
+        if self.poses is not None and self.pose_optimizer is None:
+            return False
+        return self._placeholder or bool(self.optimizer.defaults.get("fused"))
+
+    def graph_key(self) -> tuple:
+        """What a captured step bakes in of the calibration: whether the poses step (their lr
+        is 0 before refine_start; the row Adam is then not launched at all)."""
+        return (self.poses is not None and self.pose_lr_now > 0,)
+
+    def lr_as_tensors(self, device: torch.device) -> None:
+        """Learning rates as device tensors a captured step reads (`before_step` fills them)."""
+        if not self._placeholder:
+            lr_as_tensors(self.optimizer, device)
+        if self.pose_optimizer is not None:
+            self.pose_optimizer.lr_as_tensors(device)
+
+    def lr_as_floats(self) -> None:
+        """Undo `lr_as_tensors` (also after loading a state saved with tensor lrs)."""
+        lr_as_floats(self.optimizer)
+        if self.pose_optimizer is not None:
+            lr_as_floats(self.pose_optimizer)
 
     @classmethod
     def wanted(cls, cfg: TrainConfig) -> bool:
@@ -148,11 +178,10 @@ class SelfCalibration:
         threshold lr follows; the pose lr decays on its own from refine_lr to refine_lr_final.
         """
         c = self.cfg
+        self.pose_lr_now = pose_lr(c, progress)
         for g in self.param_groups():
-            if g["name"] == "poses":
-                g["lr"] = pose_lr(c, progress)
-            else:
-                g["lr"] = c.threshold_lr * field_lr_scale
+            lr = self.pose_lr_now if g["name"] == "poses" else c.threshold_lr * field_lr_scale
+            set_group_lr(g, lr)
         if self.poses is not None:
             self.c2f = set_encoding_window(
                 self.field, progress, c.refine_c2f_start, c.refine_c2f_end, c.refine_c2f_mode
@@ -224,9 +253,7 @@ class SelfCalibration:
         """Whether the row Adam steps the poses now (lr > 0 and a gradient); it then also
         applies refine_decay (`RowAdam.step`'s decay, the same ops as `_decay_poses`)."""
         opt = self.pose_optimizer
-        return (
-            opt is not None and opt.param_groups[0]["lr"] > 0 and self.poses.delta.grad is not None
-        )
+        return opt is not None and self.pose_lr_now > 0 and self.poses.delta.grad is not None
 
     @torch.no_grad()
     def _decay_poses(self, found_inf: torch.Tensor | None) -> None:
@@ -234,7 +261,7 @@ class SelfCalibration:
         from Adam: its normalised step would scale a prior's pull up to the lr), after the
         optimiser's step; skipped with it (found_inf). Where the row Adam steps the poses it
         does this itself (`RowAdam.step(decay=...)`); this is for the other cases."""
-        lr = next(g["lr"] for g in self.param_groups() if g["name"] == "poses")
+        lr = self.pose_lr_now
         if lr * self.cfg.refine_decay == 0:
             return  # a factor of exactly 1: nothing changes
         seen = self._seen

@@ -28,12 +28,12 @@ from .data.formats.native import Scene
 from .device_step import FiniteGuard, PendingStats, device_scalar, supports_device_guard
 from .errors import InputError
 from .fields import Field, make_field
-from .graph_step import GraphedStep
+from .graph_step import graphed_step
 from .hooks import Hook, default_hooks
 from .io import write_json
 from .losses import total_loss
 from .memory import check_ray_batch
-from .optim import field_adam, lr_as_floats, lr_as_tensors, set_lr
+from .optim import field_adam, lr_as_floats, set_lr
 from .perturb import perturb_training_data
 from .pose_smoothing import smoothed_rig
 from .run import (
@@ -227,12 +227,12 @@ class Trainer:
         if hasattr(self.field, "use_fixed_capacity"):  # no host read of the sample count
             self.field.use_fixed_capacity(self.step_mode == "device")
         lr_as_floats(self.optimizer)
-        static = self.selfcal is None or self.selfcal.static  # no schedule a graph would bake
-        if want == "graph" and self.step_mode == "device" and static:
-            if self.field.graph_key() is not None:
-                lr_as_tensors(self.optimizer, self.device)
-                self.graph = GraphedStep(self._graph_body, self.field, self.device, capture)
-                self.step_mode = "graph"
+        if self.selfcal is not None:
+            self.selfcal.lr_as_floats()
+        if want == "graph" and self.step_mode == "device":
+            args = (self.field, self.optimizer, self.selfcal, self.device, capture)
+            self.graph = graphed_step(self._graph_body, *args)
+            self.step_mode = "device" if self.graph is None else "graph"
         return self.step_mode
 
     def _graph_body(self, batch) -> tuple[dict, torch.Tensor, dict]:

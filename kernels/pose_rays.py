@@ -451,22 +451,22 @@ def _row_adam(
     rows: wp.array(dtype=wp.uint8),
     use_rows: int,
     found_inf: wp.array(dtype=float),
-    lr: float,
+    lr_now: wp.array(dtype=float),
     b1: float,
     b2: float,
     one_minus_b1: float,
     one_minus_b2: float,
     eps: float,
-    rate: float,
+    decay: float,
     param: wp.array2d(dtype=float),
     exp_avg: wp.array2d(dtype=float),
     exp_avg_sq: wp.array2d(dtype=float),
     row_steps: wp.array2d(dtype=float),
 ):
     """One row: Adam on it if it was seen (rows[g], or any nonzero gradient without `rows`)
-    and found_inf[0] is 0, then the decoupled decay: the updated row times 1 − rate (rate in
-    [0, 1]; float32 like torch's `p * (1 − rate)`); otherwise the row, its moments and its
-    step count stay."""
+    and found_inf[0] is 0, then the decoupled decay: the updated row times 1 − rate, rate =
+    min(1, lr · decay) in float32; otherwise the row, its moments and its step count stay.
+    lr_now[0]: the learning rate, read on the device (a captured step replays each step's)."""
     g = wp.tid()
     if found_inf[0] != 0.0:
         return
@@ -479,7 +479,8 @@ def _row_adam(
     row_steps[g, 0] = t
     bc1 = 1.0 - wp.pow(b1, t)
     bc2 = 1.0 - wp.pow(b2, t)
-    keep = 1.0 - rate
+    lr = lr_now[0]
+    keep = 1.0 - wp.min(1.0, lr * decay)
     for j in range(grad.shape[1]):
         gj = grad[g, j]
         m = exp_avg[g, j] * b1 + gj * one_minus_b1
@@ -496,7 +497,7 @@ def row_adam(
     state: dict[str, torch.Tensor],
     rows: torch.Tensor | None,
     found_inf: torch.Tensor | None,
-    lr: float,
+    lr: float | torch.Tensor,
     betas: tuple[float, float],
     eps: float,
     decay: float = 0.0,
@@ -506,8 +507,10 @@ def row_adam(
     grad: (G, k) float32; state: exp_avg, exp_avg_sq (G, k) and row_steps (G, 1) float32,
     contiguous; rows: (G,) bool rows to step, or None (rows with a nonzero gradient);
     found_inf: optional 0-dim or (1,) flag on the device, non-zero: no row steps (and no
-    decay); decay: decoupled decay (AdamW's): each stepped row, after its Adam update, times
-    1 − min(1, lr · decay) (0: none, bit for bit).
+    decay); lr: a float, or a 1-element float32 tensor on the parameter's device that the
+    kernel reads (what a captured step fills before each replay); decay: decoupled decay
+    (AdamW's): each stepped row, after its Adam update, times 1 − min(1, lr · decay) (0: none,
+    bit for bit).
     """
     if decay < 0:
         raise ValueError(f"row_adam: decay must be >= 0, got {decay}")
@@ -517,6 +520,12 @@ def row_adam(
     use_rows = rows is not None
     rows_u8 = (rows.to(dev, torch.bool) if use_rows else flag).view(torch.uint8)
     args = [grad.contiguous(), rows_u8.contiguous(), int(use_rows), flag.contiguous()]
-    args += [float(lr), b1, b2, 1.0 - b1, 1.0 - b2, float(eps), min(1.0, float(lr) * decay)]
+    if torch.is_tensor(lr):
+        if lr.numel() != 1 or lr.dtype != torch.float32 or lr.device != dev:
+            raise ValueError("row_adam: a tensor lr must be one float32 on the parameter's device")
+        lr_now = lr.reshape(1)
+    else:
+        lr_now = torch.full((1,), float(lr), device=dev)
+    args += [lr_now, b1, b2, 1.0 - b1, 1.0 - b2, float(eps), float(decay)]
     args += [param, state["exp_avg"], state["exp_avg_sq"], state["row_steps"]]
     launch(_row_adam, param.shape[0], param, args)

@@ -471,3 +471,22 @@ def test_an_out_that_is_a_file_is_refused_before_any_work(module, args, tmp_path
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith(f"{module}: error: --out {out}"), err
     assert taken.read_text() == "keep"
+
+
+def test_step_time_times_variants_side_by_side_on_cpu(tiny_scene, tmp_path):
+    from benchmarks import step_time
+
+    out = tmp_path / "steps"
+    refine = 'refine={"train": {"refine_poses": true, "step_mode": "graph"}}'
+    argv = ["--scene", str(tiny_scene), "--device", "cpu", "--warmup", "2", "--steps", "3"]
+    argv += ["--variant", 'plain={"train": {"step_mode": "graph"}}', "--variant", refine]
+    assert step_time.main(argv + ["--out", str(out), "--quiet"]) == 0
+    res = json.loads((out / "step_time.json").read_text())
+    plain, refined = res["rows"]
+    assert plain["ratio"] == 1.0 and refined["ratio"] > 0 and refined["ms_per_step"] > 0
+    assert plain["step_mode"] == refined["step_mode"] == "graph"  # eager body on a CPU
+    assert plain["samples_per_ray"] > 0 and refined["variant"] == "refine"
+    md = (out / "step_time.md").read_text()
+    assert "CPU numbers" in md and "| refine |" in md
+    bad = argv[:6] + ["--variant", "a={}", "--variant", "a={}", "--out", str(tmp_path / "x")]
+    assert step_time.main(bad) == 2

@@ -90,7 +90,8 @@ def test_graph_step_flags_an_overflowing_sample_buffer(scene, tmp_path, device):
 def test_graph_mode_falls_back_where_a_step_cannot_be_captured(scene, tmp_path):
     vanilla = Trainer(scene, tiny_cfg("vanilla", step_mode="graph"), tmp_path / "v")
     assert vanilla.step_mode == "device" and vanilla.graph is None
-    refined = make(scene, tmp_path / "r", "device", refine_poses=True)
+    # plain Adam on the poses decays them at a host-side rate: not capturable
+    refined = make(scene, tmp_path / "r", "device", refine_poses=True, refine_optimizer="adam")
     assert refined.set_step_mode("graph") == "device"
 
 
@@ -133,5 +134,50 @@ def test_graph_body_applies_a_measured_threshold_ratio_on_the_cpu(scene, tmp_pat
     assert losses(graph, 6) == a
     static = graph.graph._static  # what a captured replay reads: this step's parts, not stale
     assert static.parts is not None and static.pix is not None
-    learnt = make(scene, tmp_path / "learnt", "device", **kw, threshold_ratio="learn")
-    assert learnt.set_step_mode("graph") == "device"
+
+
+def test_graph_body_learns_a_threshold_ratio_on_the_cpu(scene, tmp_path):
+    """A learnt ratio is graphed too (its lr a device tensor, filled each step): the graphed
+    body takes the plain path's steps and learns the same thresholds."""
+    kw = dict(steps=6, estimate_threshold=True, threshold_ratio="learn")
+    plain = make(scene, tmp_path / "plain", "plain", **kw)
+    a = losses(plain, 6)
+    graph = make(scene, tmp_path / "graph", "graph", **kw)
+    assert not graph.selfcal.static and graph.step_mode == "graph"
+    assert torch.is_tensor(graph.selfcal.optimizer.param_groups[0]["lr"])
+    assert losses(graph, 6) == a
+    want, got = (t.selfcal.thresholds.log_ratio for t in (plain, graph))
+    assert torch.equal(want, got) and float(got.detach()) != 0.0
+
+
+def test_graph_body_refines_poses_on_the_cpu(scene, tmp_path):
+    """Pose refinement with the row Adam is graphed: its lr and the coarse-to-fine weights are
+    device tensors filled before each step, and what they switch (the poses' first step at
+    refine_start, every level on at refine_c2f_end) is in the graph's key. The graphed body
+    takes the plain path's steps bit for bit through both switches, and learns the same poses."""
+    kw = dict(steps=14, refine_poses=True, refine_start=0.2, refine_warmup=0.0)
+    kw.update(refine_c2f_start=0.0, refine_c2f_end=0.6)
+    plain = make(scene, tmp_path / "plain", "plain", **kw)
+    a = losses(plain, 14)
+    graph = make(scene, tmp_path / "graph", "graph", **kw)
+    assert graph.step_mode == "graph"
+    keys, weights = [], set()
+    for _ in range(14):
+        graph.step()
+        _, field_key, cal_key = graph.graph._key
+        keys.append((field_key[-1], cal_key))  # the level weights' use, the poses stepping
+        if graph.field.level_weights is not None:  # one tensor, filled in place: a replay reads it
+            weights.add(graph.field.level_weights.data_ptr())
+    graph.flush_stats()
+    assert [s["loss"] for s in graph.history] == a
+    # before refine_start, refining under c2f, then every level on
+    assert list(dict.fromkeys(keys)) == [
+        ("gradient", (False,)),
+        ("gradient", (True,)),
+        (False, (True,)),
+    ]
+    assert graph.field.level_weights is None and len(weights) == 1
+    want, got = (t.selfcal.poses.delta for t in (plain, graph))
+    assert torch.equal(want, got) and float(got.abs().max()) > 0
+    static = graph.graph._static
+    assert static.dirs is not None and static.pose_idx is not None

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from fastenerf.kernels.pose_rays import pose_rays
+from fastenerf.optim import set_group_lr
 from fastenerf.pose_refine import PoseRefiner, RowAdam
 from fastenerf.render import generate_rays
 from fastenerf.se3 import so3_exp
@@ -187,13 +188,18 @@ def _row_adam_float64(p, grads, rows, flags, lrs, decay, b1=0.9, b2=0.999, eps=1
 @pytest.mark.parametrize("decay", [0.0, 4.0, 150.0])  # lr·decay 0, up to 0.04, >= 1 at first
 @pytest.mark.parametrize("fused", [True, False])
 @pytest.mark.parametrize("device", DEVICES)
-def test_row_adam_decay_matches_float64(decay, fused, device):
+@pytest.mark.parametrize("lr_tensor", [False, True])
+def test_row_adam_decay_matches_float64(decay, fused, device, lr_tensor):
     """The decay of `RowAdam.step(decay=...)` (kernel and torch step): only on the rows the
-    batch saw, after their Adam step, none on a found_inf step; lr·decay >= 1 zeroes the row."""
+    batch saw, after their Adam step, none on a found_inf step; lr·decay >= 1 zeroes the row.
+    lr_tensor: the lr a device tensor filled each step (`RowAdam.lr_as_tensors`, what a
+    captured step reads), the same steps."""
     gen = torch.Generator().manual_seed(5)
     start = torch.randn(G, 6, generator=gen)
     p = torch.nn.Parameter(start.clone().to(device))
     opt = RowAdam([p], lr=1e-2, eps=1e-12, fused=fused)
+    if lr_tensor:
+        opt.lr_as_tensors(torch.device(device))
     grads, rows, flags, lrs = [], [], [], []
     for step in range(8):
         g = torch.randn(G, 6, generator=gen)
@@ -202,7 +208,7 @@ def test_row_adam_decay_matches_float64(decay, fused, device):
         lr = 1e-2 * 0.7**step  # lr·decay = 1.5 on the first step with decay 150, 0.18 at last
         before = p.detach().clone()
         p.grad = g.to(device)
-        opt.param_groups[0]["lr"] = lr
+        set_group_lr(opt.param_groups[0], lr)
         skip = step == 3
         opt.step(seen.to(device), found_inf=torch.tensor(float(skip), device=device), decay=decay)
         after = p.detach()
@@ -214,13 +220,15 @@ def test_row_adam_decay_matches_float64(decay, fused, device):
             assert (after[seen.to(device)] == 0).all() and (before[seen.to(device)] != 0).any()
     want = _row_adam_float64(start, grads, rows, flags, lrs, decay)
     torch.testing.assert_close(p.detach().cpu().double(), want, atol=1e-7, rtol=1e-5)
-    # decay 0 is no decay, bit for bit: the same steps without the argument
-    if decay == 0.0:
+    # decay 0 is no decay, bit for bit: the same steps without the argument (and a float
+    # lr's steps are a tensor lr's, bit for bit)
+    if decay == 0.0 or lr_tensor:
         q = torch.nn.Parameter(start.clone().to(device))
         opt_q = RowAdam([q], lr=1e-2, eps=1e-12, fused=fused)
         for g, seen, skip, lr in zip(grads, rows, flags, lrs, strict=True):
             q.grad, opt_q.param_groups[0]["lr"] = g.to(device), lr
-            opt_q.step(seen.to(device), found_inf=torch.tensor(float(skip), device=device))
+            flag = torch.tensor(float(skip), device=device)
+            opt_q.step(seen.to(device), found_inf=flag, **({"decay": decay} if decay else {}))
         assert torch.equal(q.detach(), p.detach())
 
 

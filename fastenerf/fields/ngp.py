@@ -226,7 +226,8 @@ class NGPField(Field):
         xn, w, cfg = self._normalise(_cast(x, torch.float32)), None, self.grid_cfg
         table = _cast(self.table, torch.float32)
         if self.level_weights is not None:
-            w = self.level_weights.repeat_interleave(cfg.n_features)
+            # expand, not repeat_interleave: nothing a captured step could wait on
+            w = self.level_weights[:, None].expand(-1, cfg.n_features).reshape(-1)
         if w is not None and self.level_weights_mode == "gradient":
             # coarse-to-fine on the pose gradient only (fields/level_weights.py), in the
             # encoding's backward: one forward, the x-gradient weighted
@@ -335,13 +336,15 @@ class NGPField(Field):
         return opt.cone_angle
 
     def graph_key(self) -> tuple | None:
-        """Capturable while training marches into fixed buffers and no level weights (pose
-        refinement's coarse-to-fine) change per step: (capacities, cone)."""
-        if self.sample_capacity is None or self.level_weights is not None:
+        """Capturable while training marches into fixed buffers: (capacities, cone, level
+        weights' use). Pose refinement's coarse-to-fine weights change in place
+        (`coarse_to_fine`): a graph reads each step's; whether they apply, and how, it bakes in."""
+        if self.sample_capacity is None:
             return None
         pruned = self.pruned_capacity  # compacting or not is in the key even before sizing
         cap = (self._prunes(), pruned and pruned.capacity)
-        return (self.sample_capacity.capacity, cap, self._train_cone())
+        weights = self.level_weights is not None and self.level_weights_mode
+        return (self.sample_capacity.capacity, cap, self._train_cone(), weights)
 
     def use_fixed_capacity(self, on: bool) -> None:
         """March (and compact) training batches into fixed-capacity buffers (no host sync;
