@@ -92,6 +92,19 @@ class _Static:
         return RayBatch(**{**batch.__dict__, **fields})
 
 
+def release_generator(device: torch.device) -> None:
+    """Unmark the device's default generator after a capture that failed at its end: torch ends
+    a capture's mark on the generators it registered only when the capture succeeded, and every
+    later draw from a marked one raises ("Offset increment outside graph capture"). Its state
+    (seed, offset) moves to an unmarked state object; a generator that is not marked is left."""
+    if device.type != "cuda":
+        return
+    gen = torch.cuda.default_generators[torch.device(device).index or 0]
+    fresh = torch.Generator(device)
+    fresh.set_state(gen.get_state())
+    gen.graphsafe_set_state(fresh.graphsafe_get_state())
+
+
 def batch_key(batch: RayBatch) -> tuple:
     """The shapes a graph of this batch bakes in."""
     ch = batch.channel
@@ -202,6 +215,7 @@ class GraphedStep:
         self.failure = f"{type(error).__name__}: {error}".splitlines()[0]
         self.capture = False
         self.drop()
+        release_generator(self.device)
         warnings.warn(f"CUDA-graph step off, eager from here: {self.failure}", stacklevel=3)
 
     def drop(self) -> None:

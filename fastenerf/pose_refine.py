@@ -179,12 +179,13 @@ class PoseRefiner(nn.Module):
         return seen.any(0, keepdim=True) if self.shared else seen
 
     @torch.no_grad()
-    def stats(self) -> dict[str, float]:
+    def stats(self, on_device: bool = False) -> dict[str, float | torch.Tensor]:
         """Mean / max size of the corrections on the used rows (degrees, world units) and,
         with true poses, the corrected poses' remaining rotation error and centre offset, the
         angle of the world rotation they share against the truth (pose_gauge_deg,
         `se3.mean_world_rotation`) and the error left once it is taken out
-        (pose_error_aligned_deg)."""
+        (pose_error_aligned_deg). on_device: the values as 0-dim device tensors, no host read
+        (a device-paced step's stats, copied to the host with the rest at its flush)."""
         # masked reductions over every row, not boolean indexing: one host read, at the end
         d, used = self.corrections().double(), self.used
         n = used.sum()
@@ -214,8 +215,14 @@ class PoseRefiner(nn.Module):
                 W, torch.eye(3, dtype=W.dtype, device=W.device)
             )
             vals["pose_error_aligned_deg"] = mean(relative_angle_deg(R, W @ true[:, :3, :3]))
-        keys = list(vals)
-        return dict(zip(keys, torch.stack([vals[k] for k in keys]).tolist(), strict=True))
+        return _stacked(vals, on_device)
+
+
+def _stacked(vals: dict[str, torch.Tensor], on_device: bool) -> dict[str, float | torch.Tensor]:
+    """0-dim tensors as floats (one host read) or, on_device, as float32 device tensors."""
+    keys = list(vals)
+    row = torch.stack([vals[k] for k in keys])
+    return dict(zip(keys, row.float().unbind() if on_device else row.tolist(), strict=True))
 
 
 class RowAdam(torch.optim.Optimizer):

@@ -272,14 +272,17 @@ class SelfCalibration:
 
     # -- reporting ---------------------------------------------------------------------------
 
-    def stats(self) -> dict[str, float]:
-        """Step stats (metrics.jsonl, the viewer): the pose and threshold estimates."""
+    def stats(self, on_device: bool = False) -> dict[str, Any]:
+        """Step stats (metrics.jsonl, the viewer): the pose and threshold estimates.
+        on_device: the estimates as 0-dim device tensors, read nowhere here: a device-paced
+        step's pending stats, copied to the host at its flush (a read here would wait for
+        every queued step, off the training clock)."""
         out: dict[str, Any] = {}
         if self.poses is not None:
-            out.update(self.poses.stats())
+            out.update(self.poses.stats(on_device))
             out["c2f"] = 1.0 if self.c2f is None else self.c2f
         if self.thresholds is not None:
-            out.update(self.thresholds.stats())
+            out.update(self.thresholds.stats(on_device))
         if self.skipped_steps:
             out["calibration_skipped_steps"] = self.skipped_steps
         return out

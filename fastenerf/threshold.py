@@ -121,13 +121,14 @@ class ThresholdEstimator(nn.Module):
             self.pixel.clamp_(-PIXEL_MAX, PIXEL_MAX)
 
     @torch.no_grad()
-    def stats(self) -> dict[str, float]:
+    def stats(self, on_device: bool = False) -> dict[str, float | torch.Tensor]:
         """threshold_pos, threshold_neg (global), threshold_ratio, and the per-pixel factors'
-        RMS log deviation when learnt."""
+        RMS log deviation when learnt; on_device: 0-dim device tensors (no host read)."""
         c = self.thresholds()
         vals = [c[0], c[1], c[0] / c[1]]
         keys = ["threshold_pos", "threshold_neg", "threshold_ratio"]
         if self.pixel is not None:
             vals.append(self.pixel.square().mean().sqrt())
             keys.append("threshold_pixel_rms")
-        return dict(zip(keys, torch.stack(vals).tolist(), strict=True))
+        row = torch.stack(vals)
+        return dict(zip(keys, row.unbind() if on_device else row.tolist(), strict=True))

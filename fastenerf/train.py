@@ -485,10 +485,10 @@ class Trainer:
                 n = out[key]
                 n = float(n) if torch.is_tensor(n) and not on_device else n
                 stats[name] = n / n_rays  # a device count: one division, int32 -> float32
-        # the calibration's estimates are read on the host: every step on the plain path, at
-        # the flush steps on the device-paced one
+        # the calibration's estimates: every step on the plain path, at the flush steps (as
+        # device tensors the flush copies) on the device-paced one
         if self.selfcal is not None and (not on_device or self._flush_due()):
-            stats.update(self.selfcal.stats())
+            stats.update(self.selfcal.stats(on_device))
         if not on_device:
             if self.skipped_steps:
                 stats["skipped_steps"] = self.skipped_steps

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from fastenerf.data.formats.native import load_scene
-from fastenerf.graph_step import WARMUP
+from fastenerf.graph_step import WARMUP, GraphedStep
 from fastenerf.train import Trainer
 from tests.test_train import NGP_TINY, tiny_cfg
 
@@ -181,3 +181,30 @@ def test_graph_body_refines_poses_on_the_cpu(scene, tmp_path):
     assert torch.equal(want, got) and float(got.abs().max()) > 0
     static = graph.graph._static
     assert static.dirs is not None and static.pose_idx is not None
+
+
+@pytest.mark.skipif(not CUDA, reason="no CUDA: capture needs it")
+def test_a_failed_capture_leaves_an_eager_step_that_draws_random_numbers(scene, tmp_path):
+    """A body that cannot be captured (here: a host sync inside it) gives up capturing with
+    one warning and runs eagerly from then on, drawing its jitter from the default generator
+    that the failed capture had marked (`graph_step.release_generator`)."""
+    trainer = make(scene, tmp_path / "run", "graph", "cuda", steps=20)
+    body = trainer.graph.body
+    calls = []
+
+    def syncing_body(batch):
+        calls.append(1)
+        if len(calls) > WARMUP:  # the capture: a sync there invalidates it
+            torch.cuda.synchronize()
+        return body(batch)
+
+    g = trainer.graph
+    trainer.graph = GraphedStep(syncing_body, trainer.field, trainer.device, True, None)
+    with pytest.warns(UserWarning, match="CUDA-graph step off"):
+        for _ in range(WARMUP + 3):
+            trainer.step()
+    trainer.flush_stats()
+    assert trainer.graph.failure is not None and trainer.graph.captures == 0
+    assert all(torch.isfinite(torch.tensor(s["loss"])) for s in trainer.history)
+    torch.rand(4, device="cuda")  # the default generator draws again
+    del g

@@ -501,6 +501,34 @@ def test_both_options_recorded_checkpointed_and_resumed_exactly(scene, tmp_path)
     assert "threshold_ratio" in progress["self_calibration"]
 
 
+def test_device_paced_step_reads_the_estimates_at_its_flush_only(scene, tmp_path):
+    """On the device-paced step the calibration's estimates join the pending stats as device
+    tensors: a host read at the step would wait for every queued step, off the training
+    clock (60 s runs with an option trained for minutes). They reach the history as floats."""
+    from fastenerf.train import STATS_FLUSH_EVERY
+
+    cfg = dict(refine_poses=True, estimate_threshold=True, step_mode="device")
+    tr = Trainer(scene, tiny(**cfg, perturb=PerturbConfig(pose_error_deg=1.0)), tmp_path / "r")
+    assert tr.step_mode == "device"
+    real, asked = tr.selfcal.stats, []
+
+    def spy(on_device=False):
+        out = real(on_device)
+        asked.append(on_device)
+        assert torch.is_tensor(out["threshold_pos"]) == torch.is_tensor(out["pose_error_deg"])
+        assert torch.is_tensor(out["pose_error_deg"]) == on_device
+        return out
+
+    tr.selfcal.stats = spy
+    for _ in range(2 * STATS_FLUSH_EVERY):
+        tr.step()
+    tr.flush_stats()
+    assert asked and all(asked)
+    got = [h for h in tr.history if "pose_error_deg" in h]
+    assert got and all(isinstance(h[k], float) for h in got for k in ("threshold_pos", "c2f"))
+    assert got[0]["pose_error_deg"] == pytest.approx(1.0, abs=0.2)
+
+
 def test_cli_flags(tmp_path):
     import argparse
 
