@@ -39,3 +39,12 @@ def benchmark_main(
     except FastenerfError as e:
         print(f"{name}: error: {e}", file=sys.stderr)
         return 2
+
+
+def add_run_arguments(p: argparse.ArgumentParser, out: str) -> None:
+    """The options every device benchmark takes: --device, --out (default `out`), --commit
+    (recorded; the device machine's copy of the tree has no .git) and --quiet."""
+    p.add_argument("--device", default="auto", help="cuda, cuda:N, cpu or auto")
+    p.add_argument("--out", default=out, help="output folder")
+    p.add_argument("--commit", default=None, help="git commit to record")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -32,11 +32,10 @@ import torch
 
 from benchmarks.cli import benchmark_main
 from benchmarks.curve import load_scene_dir, make_config
-from benchmarks.session import jsonable, session_info
+from benchmarks.session import session_info, write_report
 from fastenerf.commands.demo import CPU_TRAIN
 from fastenerf.errors import InputError
 from fastenerf.hooks import Hook, default_hooks
-from fastenerf.io import atomic_path, write_json
 
 EVAL_VIEWS = 10
 
@@ -278,10 +277,7 @@ def run(args: argparse.Namespace) -> int:
     for scene_dir in args.scene:
         rows += run_scene(scene_dir, variants, args, out)
     res = {"seconds": args.seconds, "threads": args.threads, "rows": rows, "session": session}
-    write_json(out / "cpu_preset.json", jsonable(res))
-    with atomic_path(out / "cpu_preset.md") as tmp:
-        tmp.write_text(markdown(res))
-    print(markdown(res))
+    write_report(out, "cpu_preset", res, markdown(res))
     return 0
 
 

@@ -30,9 +30,9 @@ import numpy as np
 import torch
 
 from benchmarks.cli import benchmark_main
-from benchmarks.session import jsonable, session_info
+from benchmarks.session import session_info, write_report
 from fastenerf.errors import InputError
-from fastenerf.io import atomic_path, write_image, write_json
+from fastenerf.io import write_image
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -150,10 +150,7 @@ def run(args: argparse.Namespace) -> int:
     }
     diff = np.clip(4 * np.abs(tex_img[0] - ref[0]), 0, 1)
     write_image(out / "mesh_texture.png", np.concatenate([ref[0], tex_img[0], vc_img[0], diff], 1))
-    write_json(out / "mesh_texture.json", jsonable(res))
-    with atomic_path(out / "mesh_texture.md") as tmp:
-        tmp.write_text(markdown(res))
-    print(markdown(res))
+    write_report(out, "mesh_texture", res, markdown(res))
     return 0
 
 

@@ -33,14 +33,13 @@ from typing import Any
 
 import torch
 
-from benchmarks.cli import benchmark_main
+from benchmarks.cli import add_run_arguments, benchmark_main
 from benchmarks.cpu_preset import build, parse_variant
 from benchmarks.curve import load_scene_dir, make_config
-from benchmarks.session import jsonable, session_info
+from benchmarks.session import session_info, write_report
 from fastenerf.backends import BACKEND_NAMES
 from fastenerf.errors import InputError
 from fastenerf.hooks import Hook
-from fastenerf.io import atomic_path, write_json
 from fastenerf.progress import progress_bar
 from fastenerf.run import resolve_device
 
@@ -317,10 +316,7 @@ def run(args: argparse.Namespace) -> int:
         marched_per_ray=(sum(mpr) / len(mpr)) if mpr else None,
         session=session_info(device, args.commit),
     )
-    write_json(out / "profile_step.json", jsonable(res))
-    with atomic_path(out / "profile_step.md") as tmp:
-        tmp.write_text(markdown(res))
-    print(markdown(res))
+    write_report(out, "profile_step", res, markdown(res))
     return 0
 
 
@@ -330,10 +326,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default="fast")
     p.add_argument("--warmup", type=int, default=200, help="steps before the profile")
     p.add_argument("--steps", type=int, default=50, help="profiled steps")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--out", default="runs/bench/profile_step")
-    p.add_argument("--commit", default=None, help="git commit to record")
-    p.add_argument("--quiet", action="store_true")
+    add_run_arguments(p, "runs/bench/profile_step")
     p.add_argument(
         "--variant",
         metavar="NAME[=JSON]",

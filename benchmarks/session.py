@@ -109,3 +109,14 @@ def jsonable(obj: Any) -> Any:
     if isinstance(obj, (list, tuple)):
         return [jsonable(v) for v in obj]
     return obj
+
+
+def write_report(out: Path, name: str, res: dict[str, Any], md: str) -> None:
+    """A benchmark's results: OUT/NAME.json (strict JSON) and OUT/NAME.md, each written
+    atomically, and the markdown printed."""
+    from fastenerf.io import atomic_path, write_json
+
+    write_json(Path(out) / f"{name}.json", jsonable(res))
+    with atomic_path(Path(out) / f"{name}.md") as tmp:
+        tmp.write_text(md)
+    print(md)

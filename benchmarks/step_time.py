@@ -25,13 +25,13 @@ from typing import Any
 
 import torch
 
-from benchmarks.cli import benchmark_main
+from benchmarks.cli import add_run_arguments, benchmark_main
 from benchmarks.cpu_preset import build, parse_variant
 from benchmarks.curve import load_scene_dir
-from benchmarks.session import jsonable, session_info
+from benchmarks.session import jsonable, session_info, write_report
 from fastenerf.errors import InputError
 from fastenerf.hooks import Hook
-from fastenerf.io import atomic_path, write_json
+from fastenerf.io import write_json
 from fastenerf.progress import progress_bar
 from fastenerf.run import resolve_device
 
@@ -157,9 +157,7 @@ def run(args: argparse.Namespace) -> int:
             if device.type == "cuda":
                 torch.cuda.empty_cache()
             write_json(out / "step_time.json", jsonable(res))  # each row as it comes
-    with atomic_path(out / "step_time.md") as tmp:
-        tmp.write_text(markdown(res))
-    print(markdown(res))
+    write_report(out, "step_time", res, markdown(res))
     return 0
 
 
@@ -174,10 +172,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--warmup", type=int, default=1000, help="steps before the timed ones")
     p.add_argument("--steps", type=int, default=320, help="steps timed")
     p.add_argument("--budget-s", type=float, default=60.0, help="the schedules' budget (s)")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--out", default="runs/bench/step_time")
-    p.add_argument("--commit", default=None, help="git commit to record")
-    p.add_argument("--quiet", action="store_true")
+    add_run_arguments(p, "runs/bench/step_time")
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:

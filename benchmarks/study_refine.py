@@ -22,8 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.cli import benchmark_main
-from benchmarks.session import finite, jsonable
-from fastenerf.io import atomic_path, write_json
+from benchmarks.session import finite, write_report
 
 # The targets: PSNR at 1 and 2 degrees with refinement within this of the plain 0 run
 WITHIN_DB = {1.0: 1.0, 2.0: 2.0}
@@ -163,11 +162,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     res = summarize(out)
-    write_json(out / "refine_summary.json", jsonable(res))
-    with atomic_path(out / "refine_summary.md") as tmp:
-        tmp.write_text(markdown(res))
     plot(res, out / "refine_summary.png")
-    print(markdown(res))
+    write_report(out, "refine_summary", res, markdown(res))
     return 0
 
 
