@@ -1,4 +1,4 @@
-"""`fastenerf bench error-vs-time|knobs|kernels|study ...`: run a benchmark of the repo's
+"""`fastenerf bench error-vs-time|knobs|kernels|step-time|study ...`: run a benchmark of the repo's
 benchmarks/ folder.
 
 The benchmarks are a plain folder at the repository root (not installed with the package); this
@@ -16,13 +16,15 @@ from pathlib import Path
 
 HELP = (
     "benchmarks: error against training time (ngp vs vanilla), ngp accuracy knobs, kernels, "
-    "robustness studies (pose error, mount error, noise, ablation)"
+    "step time of option variants, robustness studies (pose error, mount error, noise, "
+    "ablation)"
 )
 
 BENCHMARKS = {
     "error-vs-time": "benchmarks.error_vs_time",
     "knobs": "benchmarks.knobs",
     "kernels": "benchmarks.kernels",
+    "step-time": "benchmarks.step_time",
     "study": "benchmarks.study",
 }
 
