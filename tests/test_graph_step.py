@@ -208,3 +208,21 @@ def test_a_failed_capture_leaves_an_eager_step_that_draws_random_numbers(scene, 
     assert all(torch.isfinite(torch.tensor(s["loss"])) for s in trainer.history)
     torch.rand(4, device="cuda")  # the default generator draws again
     del g
+
+
+def test_graphed_refinement_checkpoints_and_resumes(scene, tmp_path):
+    """A graphed run with both options saves its learning rates as device tensors (the row
+    Adam's (1,) tensor, the fused Adam's 0-dim one); a resumed run takes them back as floats
+    and trains on, graphed again where asked."""
+    kw = dict(refine_poses=True, estimate_threshold=True, threshold_ratio="learn")
+    trainer = make(scene, tmp_path / "run", "graph", steps=4, **kw)
+    assert torch.is_tensor(trainer.selfcal.pose_optimizer.param_groups[0]["lr"])
+    trainer.run(hooks=[], progress=False)
+    trainer.save_checkpoint(finished=True)
+    cfg = tiny_cfg("ngp", step_mode="device", steps=7, **kw)
+    resumed = Trainer(scene, cfg, tmp_path / "run", True)
+    groups = resumed.selfcal.param_groups()
+    assert groups and not any(torch.is_tensor(g["lr"]) for g in groups)
+    assert resumed.set_step_mode("graph") == "graph"
+    resumed.run(hooks=[], progress=False)
+    assert resumed.step_count == 7 and torch.isfinite(resumed.selfcal.poses.delta).all()
