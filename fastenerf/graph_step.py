@@ -99,7 +99,8 @@ def release_generator(device: torch.device) -> None:
     (seed, offset) moves to an unmarked state object; a generator that is not marked is left."""
     if device.type != "cuda":
         return
-    gen = torch.cuda.default_generators[torch.device(device).index or 0]
+    index = device.index if device.index is not None else torch.cuda.current_device()
+    gen = torch.cuda.default_generators[index]
     fresh = torch.Generator(device)
     fresh.set_state(gen.get_state())
     gen.graphsafe_set_state(fresh.graphsafe_get_state())
