@@ -19,6 +19,7 @@ Outputs in OUT: step_time.json and step_time.md (the table for benchmarks/RESULT
 from __future__ import annotations
 
 import argparse
+import gc
 import time
 from pathlib import Path
 from typing import Any
@@ -134,6 +135,8 @@ def markdown(res: dict[str, Any]) -> str:
 def run(args: argparse.Namespace) -> int:
     if args.steps < 1 or args.warmup < 0:
         raise InputError("--steps must be >= 1 and --warmup >= 0")
+    if not args.budget_s > 0:
+        raise InputError(f"--budget-s must be > 0, got {args.budget_s}")
     variants = [parse_variant(v) for v in (args.variant or ["default={}"])]
     names = [n for n, _ in variants]
     if len(set(names)) != len(names):
@@ -154,6 +157,7 @@ def run(args: argparse.Namespace) -> int:
             row["ratio"] = row["ms_per_step"] / first
             res["rows"].append(row)
             del trainer
+            gc.collect()  # a trainer's cycles hold its graphs and buffers until collected
             if device.type == "cuda":
                 torch.cuda.empty_cache()
             write_json(out / "step_time.json", jsonable(res))  # each row as it comes

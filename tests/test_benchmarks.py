@@ -490,3 +490,5 @@ def test_step_time_times_variants_side_by_side_on_cpu(tiny_scene, tmp_path):
     assert "CPU numbers" in md and "| refine |" in md
     bad = argv[:6] + ["--variant", "a={}", "--variant", "a={}", "--out", str(tmp_path / "x")]
     assert step_time.main(bad) == 2
+    assert step_time.main(argv[:6] + ["--budget-s", "0", "--out", str(tmp_path / "y")]) == 2
+    assert not (tmp_path / "y" / "step_time.json").exists()
