@@ -581,6 +581,8 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
     unknown = sorted(set(values) - names)
     if unknown:
         raise InputError(f"unknown training option(s) {unknown}")
+    if isinstance(values.get("perturb"), dict):  # e.g. a benchmark's --set perturb={...}
+        values["perturb"] = from_dict(PerturbConfig, values["perturb"], "perturb")
     cfg = TrainConfig(backend=backend, preset=name, **values)
     if cfg.lr is None:
         cfg.lr = lr

@@ -129,3 +129,15 @@ def test_ngp_cone_angle_follows_the_budget_and_is_recorded():
     again = TrainConfig.from_dict(json.loads(json.dumps(short.to_dict())))
     again.minutes, again.steps = None, None
     assert again.validate().backend_options["cone_angle"] == 0.0
+
+
+def test_a_preset_takes_the_perturbation_as_a_dict(scene_config):
+    """A benchmark's `--set perturb={...}` hands train_preset a dict: it becomes the dataclass
+    (a resolved config copies it with dataclasses.replace), and a bad key is one clear error."""
+    from fastenerf.config import PerturbConfig, train_preset
+
+    cfg = train_preset("fast", "ngp", perturb={"pose_error_deg": 1.0})
+    assert isinstance(cfg.perturb, PerturbConfig) and cfg.perturb.pose_error_deg == 1.0
+    assert cfg.resolved(scene_config(), "cpu").perturb.pose_error_deg == 1.0
+    with pytest.raises(InputError, match="perturb"):
+        train_preset("fast", "ngp", perturb={"pose_err": 1.0})
