@@ -403,6 +403,9 @@ class TrainConfig:
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
     """adam: one Adam over every pose row (a row no batch sees still moves on its momentum);
     row-adam: lazy Adam, each row's moments and step only when a batch sees that row."""
+    refine_beta1: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
+    """The row Adam's momentum: a row's update is lr · m/√v, and over visits whose gradients
+    are noise m/√v shrinks as √((1 − β1)/(1 + β1)) while a consistent gradient keeps it near 1."""
     refine_gauge: Literal["auto", "mean", "first", "none"] = "auto"
     """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift);
     auto: none for turns only (the given centres fix the frame), mean with refine_translation."""

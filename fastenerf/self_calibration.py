@@ -98,9 +98,11 @@ class SelfCalibration:
                 translation=cfg.refine_translation,
                 shared=cfg.refine_shared,
             )
+            betas = (cfg.refine_beta1, ADAM_BETAS[1])
             group = {"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"}
+            group["betas"] = betas
             if cfg.refine_optimizer == "row-adam":
-                self.pose_optimizer = RowAdam([group], cfg.refine_lr, ADAM_BETAS, ADAM_EPS)
+                self.pose_optimizer = RowAdam([group], cfg.refine_lr, betas, ADAM_EPS)
             else:
                 groups.append(group)
         if cfg.estimate_threshold:

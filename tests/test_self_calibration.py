@@ -561,3 +561,32 @@ def test_synth_biased_thresholds_and_mismatch(tmp_path):
     assert (sc.pos_threshold, sc.neg_threshold) == (0.3, 0.2)
     bad = ["synth", "--scene", "blocks", "--out", str(tmp_path / "t"), "--neg-threshold", "-1"]
     assert main(bad) == 2
+
+
+@pytest.mark.parametrize("optimizer", ["row-adam", "adam"])
+def test_refine_beta1_is_the_pose_optimisers_momentum(optimizer):
+    cfg = ball_scene(n_views=6)
+    s = RaySampler(
+        EventIndex(
+            __import__("fastenerf.data.events", fromlist=["EventStream"]).EventStream.from_arrays(
+                [1, 2], [1, 2], [1000, 2000], [1, -1], 48, 36
+            ),
+            0.25,
+            0.25,
+            t_start=0,
+            t_end=6000,
+            loop=True,
+        ),
+        Rig.from_scene(cfg),
+        WindowSampler(6, 0, 6000, 1, 2),
+        rays_per_step=8,
+        windows_per_step=2,
+        neg_ratio=0.5,
+        use_kernel=False,
+        with_poses=True,
+    )
+    tc = TrainConfig(refine_poses=True, refine_beta1=0.98, refine_optimizer=optimizer)
+    cal = SelfCalibration(tc, s, (0.25, 0.25), BallField())
+    opt = cal.pose_optimizer if optimizer == "row-adam" else cal.optimizer
+    (group,) = [g for g in opt.param_groups if g.get("name") == "poses"]
+    assert group["betas"] == (0.98, 0.999)
