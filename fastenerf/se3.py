@@ -8,6 +8,7 @@ precision at small angles where arccos((tr − 1) / 2) loses half the digits.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -57,15 +58,51 @@ def relative_angle_deg(R_a: torch.Tensor, R_b: torch.Tensor) -> torch.Tensor:
 
 def mean_world_rotation(R_a: torch.Tensor, R_b: torch.Tensor, weights: torch.Tensor | None = None):
     """The rotation W (3, 3) that best turns R_b (N, 3, 3) into R_a in the world frame,
-    R_a ≈ W · R_b: argmin Σ w_i ‖W R_b,i − R_a,i‖² (Procrustes, the polar factor of
-    Σ w_i R_a,i R_b,iᵀ by SVD); weights: optional (N,) >= 0, not all 0. Same dtype as R_a.
+    R_a ≈ W · R_b: argmin Σ w_i ‖W R_b,i − R_a,i‖², i.e. argmax tr(Wᵀ M) over rotations with
+    M = Σ w_i R_a,i R_b,iᵀ; weights: optional (N,) >= 0, not all 0. Same dtype as R_a.
 
     Why: it is the part of a refinement's pose error that every camera shares about its
     own centre, the part a mean gauge holds (`PoseRefiner.stats` reports its angle).
+    Solved as Horn's quaternion form: tr(R(q)ᵀ M) = qᵀ K q, W from K's top eigenvector, found
+    by repeated squaring of K shifted positive. No SVD or eigen-solver: on CUDA those wait
+    for the device (their error checks), and a device-paced step reads these stats without
+    waiting (`PoseRefiner.stats(on_device=True)`); the answer is a rotation even where M's
+    determinant is negative.
     """
     w = torch.ones(R_a.shape[0], dtype=R_a.dtype, device=R_a.device) if weights is None else weights
     M = torch.einsum("n,nij,nkj->ik", w.to(R_a.dtype), R_a, R_b.to(R_a.dtype))
-    U, _, Vh = torch.linalg.svd(M)
-    d = torch.sign(torch.linalg.det(U @ Vh))
-    D = torch.diag(torch.stack([torch.ones_like(d), torch.ones_like(d), d]))
-    return U @ D @ Vh
+    K = torch.einsum("ij,ijab->ab", M, _quat_forms(R_a.dtype, R_a.device))
+    # |eigenvalues of K| <= Σ singular values of M <= √3 ‖M‖_F: the shift makes K PSD, and
+    # 2^40 powers leave only the top eigenvector for any gap above a ratio of 1 + 1e-10
+    P = K + torch.eye(4, dtype=K.dtype, device=K.device) * (3**0.5 * M.norm() + 1e-300)
+    for _ in range(40):
+        P = P / P.abs().amax().clamp_min(1e-300)
+        P = P @ P
+    col = P.norm(dim=0).argmax()
+    q = P.index_select(1, col[None])[:, 0]
+    return quat_to_matrix(q / q.norm())
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix (..., 3, 3) of unit quaternions q (..., 4) = (w, x, y, z)."""
+    w, x, y, z = q.unbind(-1)
+    rows = [
+        [w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z],
+    ]
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
+@functools.lru_cache(maxsize=8)
+def _quat_forms(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """(3, 3, 4, 4) symmetric B_ij with qᵀ B_ij q = R(q)_ij (`quat_to_matrix`'s entries)."""
+    B = torch.zeros(3, 3, 4, 4, dtype=torch.float64)
+    eye = torch.eye(4, dtype=torch.float64)
+    for a in range(4):
+        for b in range(4):
+            e = (eye[a] + eye[b]) if a != b else eye[a]
+            # polarisation: the bilinear form's (a, b) entry from the quadratic form
+            qa, qb, qab = quat_to_matrix(eye[a]), quat_to_matrix(eye[b]), quat_to_matrix(e)
+            B[:, :, a, b] = qab if a == b else (qab - qa - qb) / 2
+    return B.to(dtype=dtype, device=device)
