@@ -404,8 +404,7 @@ class TrainConfig:
     """adam: one Adam over every pose row (a row no batch sees still moves on its momentum);
     row-adam: lazy Adam, each row's moments and step only when a batch sees that row."""
     refine_beta1: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
-    """The row Adam's momentum: a row's update is lr · m/√v, and over visits whose gradients
-    are noise m/√v shrinks as √((1 − β1)/(1 + β1)) while a consistent gradient keeps it near 1."""
+    """The pose Adam's β1 (on noise-only visits m/√v shrinks as √((1 − β1)/(1 + β1)))."""
     refine_gauge: Literal["auto", "mean", "first", "none"] = "auto"
     """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift);
     auto: none for turns only (the given centres fix the frame), mean with refine_translation."""
@@ -581,8 +580,7 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
     ratio = values.pop("lr_final_ratio", None)
     values.update({k: v for k, v in overrides.items() if v is not None})
     names = {f.name for f in dataclasses.fields(TrainConfig)}
-    unknown = sorted(set(values) - names)
-    if unknown:
+    if unknown := sorted(set(values) - names):
         raise InputError(f"unknown training option(s) {unknown}")
     if isinstance(values.get("perturb"), dict):  # e.g. a benchmark's --set perturb={...}
         values["perturb"] = from_dict(PerturbConfig, values["perturb"], "perturb")
@@ -598,6 +596,3 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
         opts = backends.ngp_marching_defaults(cfg.backend_options, cone, str(cfg.device))
         cfg.backend_options = opts
     return cfg.validate()
-
-
-# --------------------------------------------------------------------------------------------
