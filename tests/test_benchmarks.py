@@ -492,3 +492,23 @@ def test_step_time_times_variants_side_by_side_on_cpu(tiny_scene, tmp_path):
     assert step_time.main(bad) == 2
     assert step_time.main(argv[:6] + ["--budget-s", "0", "--out", str(tmp_path / "y")]) == 2
     assert not (tmp_path / "y" / "step_time.json").exists()
+
+
+def test_compare_runs_plots_one_panel_per_prefix_and_refuses_a_missing_folder(tmp_path, capsys):
+    from benchmarks import compare_runs
+
+    for name, psnr in (("a", [20.0, 25.0]), ("b", [21.0, 24.0])):
+        (tmp_path / name).mkdir()
+        pts = [{"train_s": t, "psnr": v} for t, v in zip((1.0, 2.0), psnr, strict=True)]
+        runs = {"runs": [{"points": [{"train_s": 0.0, "psnr": 10.0}, *pts]}]}
+        (tmp_path / name / "error_vs_time.json").write_text(json.dumps(runs))
+    assert compare_runs.load_points(tmp_path / "a") == [(1.0, 20.0), (2.0, 25.0)]
+    assert compare_runs.parse_item("0°:lr=1e-3=d") == ("0°", "lr=1e-3", "d")
+    out = tmp_path / "cmp.png"
+    items = [f"0°:x={tmp_path / 'a'}", f"1°:x={tmp_path / 'b'}", f"1°:y={tmp_path / 'a'}"]
+    assert compare_runs.main([str(out), *items]) == 0
+    h, w = iio.imread(out).shape[:2]
+    assert w > 1.8 * h  # two panels side by side
+    assert compare_runs.main([str(tmp_path / "no.png"), f"x={tmp_path / 'c'}"]) == 2
+    assert "no error_vs_time.json here" in capsys.readouterr().err
+    assert not (tmp_path / "no.png").exists()
