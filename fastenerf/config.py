@@ -411,6 +411,9 @@ class TrainConfig:
     refine_shared: bool = False
     """One correction shared by every pose, c2w_i · R (a camera mis-mounted on its turntable)
     instead of one per pose; needs refine_poses; no gauge fix (refine_gauge is ignored)."""
+    refine_shared_until: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    """Budget fraction until which every pose takes one shared correction (the rows' summed
+    gradient), each its own after (0: per pose throughout); needs the gauge none."""
     refine_decay: float = field(default=30.0, metadata={"min": 0.0, "max": 1e4})
     """Decoupled decay towards the given poses (a row the batch sees shrinks by pose lr x this):
     what the events hardly constrain (a slow drift along the trajectory) goes back."""
@@ -439,13 +442,9 @@ class TrainConfig:
         ok = rays is None or rays >= wins
         _check(ok, where, "rays_per_step", f"must be at least windows_per_step ({wins})")
         self._validate_self_calibration(where)
-        if self.adam_betas is not None:
-            _check(
-                len(self.adam_betas) == 2 and all(0.0 <= b < 1.0 for b in self.adam_betas),
-                where,
-                "adam_betas",
-                f"must be two numbers in [0, 1), got {self.adam_betas}",
-            )
+        betas = self.adam_betas
+        ok = betas is None or (len(betas) == 2 and all(0.0 <= b < 1.0 for b in betas))
+        _check(ok, where, "adam_betas", f"must be two numbers in [0, 1), got {betas}")
         parse_options(self.backend, self.backend_options, f"{where} backend_options")
         return self
 
@@ -468,6 +467,9 @@ class TrainConfig:
             _check(v in allowed, where, key, f"must be one of {allowed}, got {v!r}")
         v = self.refine_start
         _check(v < 1, where, "refine_start", f"must be below 1 (poses never learnt), got {v}")
+        g = "mean" if self.refine_gauge == "auto" and self.refine_translation else self.refine_gauge
+        ok = self.refine_shared_until == 0 or (g in ("auto", "none") and not self.refine_shared)
+        _check(ok, where, "refine_shared_until", "needs refine_gauge none and no refine_shared")
         ok = self.refine_poses or not self.refine_shared
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")

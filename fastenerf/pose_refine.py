@@ -174,6 +174,15 @@ class PoseRefiner(nn.Module):
         seen[pose_idx] = True
         return o.contiguous(), nn.functional.normalize(rd, dim=-1), self._param_rows(seen)
 
+    @torch.no_grad()
+    def share_gradient(self) -> torch.Tensor:
+        """Every used row's gradient becomes the rows' sum, the gradient one correction shared
+        by every camera would get (`shared`), so rows that start equal move as one; returns
+        the rows to step, (G,) bool: every used one. In place, no host read."""
+        g = self.delta.grad
+        g.copy_(g.sum(0, keepdim=True) * self.mask)
+        return self.used
+
     def _param_rows(self, seen: torch.Tensor) -> torch.Tensor:
         """The grid rows seen (G,) as rows of `delta`: shared, (1,) whether any was."""
         return seen.any(0, keepdim=True) if self.shared else seen

@@ -132,6 +132,7 @@ class SelfCalibration:
         self._placeholder = not groups  # the optimiser holds no parameter
         self.skipped_steps = 0  # steps whose gradients were not finite
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
+        self._sharing = False  # the poses share one correction now (refine_shared_until)
         self.pose_lr_now = 0.0  # this step's pose lr, on the host (the device may hold a copy)
 
     @property
@@ -151,8 +152,9 @@ class SelfCalibration:
 
     def graph_key(self) -> tuple:
         """What a captured step bakes in of the calibration: whether the poses step (their lr
-        is 0 before refine_start; the row Adam is then not launched at all)."""
-        return (self.poses is not None and self.pose_lr_now > 0,)
+        is 0 before refine_start; the row Adam is then not launched at all) and whether they
+        share one correction (refine_shared_until)."""
+        return (self.poses is not None and self.pose_lr_now > 0, self._sharing)
 
     def lr_as_tensors(self, device: torch.device) -> None:
         """Learning rates as device tensors a captured step reads (`before_step` fills them)."""
@@ -181,6 +183,7 @@ class SelfCalibration:
         """
         c = self.cfg
         self.pose_lr_now = pose_lr(c, progress)
+        self._sharing = self.poses is not None and progress < c.refine_shared_until
         for g in self.param_groups():
             lr = self.pose_lr_now if g["name"] == "poses" else c.threshold_lr * field_lr_scale
             set_group_lr(g, lr)
@@ -240,6 +243,8 @@ class SelfCalibration:
                 return False
         elif self.optimizer.defaults.get("fused"):  # None: the placeholder, nothing to skip
             self.optimizer.found_inf, self.optimizer.grad_scale = found_inf, None
+        if self._sharing and self.poses.delta.grad is not None:
+            self._seen = self.poses.share_gradient()  # before either optimiser steps them
         if not self._placeholder:  # whose unfused step a CUDA graph could not capture
             self.optimizer.step()
         decay = self.cfg.refine_decay if self.poses is not None else 0.0

@@ -153,10 +153,11 @@ def test_graph_body_learns_a_threshold_ratio_on_the_cpu(scene, tmp_path):
 def test_graph_body_refines_poses_on_the_cpu(scene, tmp_path):
     """Pose refinement with the row Adam is graphed: its lr and the coarse-to-fine weights are
     device tensors filled before each step, and what they switch (the poses' first step at
-    refine_start, every level on at refine_c2f_end) is in the graph's key. The graphed body
-    takes the plain path's steps bit for bit through both switches, and learns the same poses."""
+    refine_start, every level on at refine_c2f_end, one shared correction until
+    refine_shared_until) is in the graph's key. The graphed body takes the plain path's steps
+    bit for bit through every switch, and learns the same poses."""
     kw = dict(steps=14, refine_poses=True, refine_start=0.2, refine_warmup=0.0)
-    kw.update(refine_c2f_start=0.0, refine_c2f_end=0.6)
+    kw.update(refine_c2f_start=0.0, refine_c2f_end=0.6, refine_shared_until=0.4)
     plain = make(scene, tmp_path / "plain", "plain", **kw)
     a = losses(plain, 14)
     graph = make(scene, tmp_path / "graph", "graph", **kw)
@@ -165,16 +166,17 @@ def test_graph_body_refines_poses_on_the_cpu(scene, tmp_path):
     for _ in range(14):
         graph.step()
         _, field_key, cal_key = graph.graph._key
-        keys.append((field_key[-1], cal_key))  # the level weights' use, the poses stepping
+        keys.append((field_key[-1], cal_key))  # level weights' use; poses stepping, sharing
         if graph.field.level_weights is not None:  # one tensor, filled in place: a replay reads it
             weights.add(graph.field.level_weights.data_ptr())
     graph.flush_stats()
     assert [s["loss"] for s in graph.history] == a
-    # before refine_start, refining under c2f, then every level on
+    # before refine_start, one shared correction, one per pose under c2f, every level on
     assert list(dict.fromkeys(keys)) == [
-        ("gradient", (False,)),
-        ("gradient", (True,)),
-        (False, (True,)),
+        ("gradient", (False, True)),
+        ("gradient", (True, True)),
+        ("gradient", (True, False)),
+        (False, (True, False)),
     ]
     assert graph.field.level_weights is None and len(weights) == 1
     want, got = (t.selfcal.poses.delta for t in (plain, graph))

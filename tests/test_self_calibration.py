@@ -590,3 +590,22 @@ def test_refine_beta1_is_the_pose_optimisers_momentum(optimizer):
     opt = cal.pose_optimizer if optimizer == "row-adam" else cal.optimizer
     (group,) = [g for g in opt.param_groups if g.get("name") == "poses"]
     assert group["betas"] == (0.98, 0.999)
+
+
+@pytest.mark.parametrize("until", [1.0, 0.0])
+def test_shared_until_moves_every_pose_as_one_then_each_its_own(ball, until):
+    """refine_shared_until: while progress is below it every used row gets the rows' summed
+    gradient and steps, so all corrections stay equal (and move); after it they part. The
+    graph key says which, so a captured step is taken again at the switch."""
+    cfg, rig, events = ball
+    grid_t = WindowSampler(cfg.n_views, 0, cfg.t_end_us, 1, 4).grid_times(np.arange(41))
+    bad_rig, _ = perturb_poses(rig, 1.0, seed=2, grid_t=grid_t)
+    tc = TrainConfig(
+        refine_poses=True, refine_start=0.0, refine_warmup=0.0, refine_shared_until=until
+    )
+    cal, _ = calibration_run(cfg, tc, events, bad_rig, 6)
+    d = cal.poses.delta.detach()[cal.poses.used]
+    assert float(d.abs().max()) > 0
+    spread = float((d - d[:1]).abs().max())
+    assert (spread == 0.0) if until == 1.0 else (spread > 0.0)
+    assert cal.graph_key() == (True, until == 1.0)
