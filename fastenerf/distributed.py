@@ -157,10 +157,14 @@ def destroy() -> None:
 
 @contextmanager
 def process_group(backend: str | None = None, **kw: Any) -> Iterator[World]:
-    """`init(...)` for the block, `destroy()` after it (also on an error)."""
+    """`init(...)` for the block, `destroy()` after it (also on an error). After a block that
+    ended normally the ranks meet at a barrier first, so no rank tears its group down while
+    another still has a message in flight to it (a rank of a CI run once aborted in C++ at
+    exit, "terminate called without an active exception", after such a gather)."""
     world = init(backend, **kw)
     try:
         yield world
+        barrier()
     finally:
         destroy()
 
