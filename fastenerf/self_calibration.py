@@ -183,7 +183,10 @@ class SelfCalibration:
         """
         c = self.cfg
         self.pose_lr_now = pose_lr(c, progress)
+        was = self._sharing
         self._sharing = self.poses is not None and progress < c.refine_shared_until
+        if was and not self._sharing:
+            self._forget_pose_moments()
         for g in self.param_groups():
             lr = self.pose_lr_now if g["name"] == "poses" else c.threshold_lr * field_lr_scale
             set_group_lr(g, lr)
@@ -191,6 +194,17 @@ class SelfCalibration:
             self.c2f = set_encoding_window(
                 self.field, progress, c.refine_c2f_start, c.refine_c2f_end, c.refine_c2f_mode
             )
+
+    @torch.no_grad()
+    def _forget_pose_moments(self) -> None:
+        """Zero the pose optimiser's moments and step counts in place (a captured step keeps
+        its buffers) where the shared phase ends: they hold the summed gradient of every row,
+        hundreds of times one row's, which would shrink each pose's own steps for as long as
+        the second moment takes to forget it (~1/(1 − β2) visits)."""
+        opt = self.pose_optimizer or self.optimizer
+        for v in opt.state.get(self.poses.delta, {}).values():
+            if torch.is_tensor(v):
+                v.zero_()
 
     def param_groups(self) -> list[dict]:
         """Every optimiser group (poses, thresholds) of both optimisers."""

@@ -609,3 +609,17 @@ def test_shared_until_moves_every_pose_as_one_then_each_its_own(ball, until):
     spread = float((d - d[:1]).abs().max())
     assert (spread == 0.0) if until == 1.0 else (spread > 0.0)
     assert cal.graph_key() == (True, until == 1.0)
+
+
+def test_shared_phase_moments_are_forgotten_at_the_switch(ball):
+    """The shared phase's Adam moments are of every row's summed gradient: at the switch to
+    one correction per pose they are zeroed in place (row step counts too), so each pose's
+    own steps start at full size. 6 steps, the switch at the 4th: at most 3 per-row steps."""
+    cfg, rig, events = ball
+    tc = TrainConfig(
+        refine_poses=True, refine_start=0.0, refine_warmup=0.0, refine_shared_until=0.5
+    )
+    cal, _ = calibration_run(cfg, tc, events, rig, 6)
+    st = cal.pose_optimizer.state[cal.poses.delta]
+    assert 1 <= float(st["row_steps"].max()) <= 3  # 3 shared steps + visits without the reset
+    assert float(st["exp_avg_sq"].max()) > 0
