@@ -45,10 +45,14 @@ def pose_lr(cfg: TrainConfig, progress: float) -> float:
     """The pose corrections' lr at training `progress` in [0, 1]: 0 before refine_start, then
     an exponential decay from refine_lr to refine_lr_final over the rest of the budget, ramped
     up linearly over its first refine_warmup (a row's first visits would otherwise take
-    full-size Adam steps in whatever direction the young field's gradient points)."""
+    full-size Adam steps in whatever direction the young field's gradient points). The
+    per-pose phase after refine_shared_until starts its own ramp and decay there."""
     if progress < cfg.refine_start:
         return 0.0
-    r = (progress - cfg.refine_start) / (1.0 - cfg.refine_start)
+    start = cfg.refine_start
+    if 0 < cfg.refine_shared_until <= progress:
+        start = max(start, cfg.refine_shared_until)
+    r = (progress - start) / (1.0 - start)
     ramp = 1.0 if cfg.refine_warmup <= 0 else min(1.0, r / cfg.refine_warmup)
     return ramp * cfg.refine_lr * (cfg.refine_lr_final / cfg.refine_lr) ** r
 

@@ -623,3 +623,10 @@ def test_shared_phase_moments_are_forgotten_at_the_switch(ball):
     st = cal.pose_optimizer.state[cal.poses.delta]
     assert 1 <= float(st["row_steps"].max()) <= 3  # 3 shared steps + visits without the reset
     assert float(st["exp_avg_sq"].max()) > 0
+    # and the per-pose phase starts its own lr schedule (ramp, then decay) at the switch
+    from fastenerf.self_calibration import pose_lr
+
+    tc = TrainConfig(refine_poses=True, refine_start=0.0, refine_shared_until=0.5)
+    first = pose_lr(tc, 0.0 + 0.1 * tc.refine_warmup)
+    assert pose_lr(tc, 0.5) == 0.0
+    assert pose_lr(tc, 0.5 + 0.05 * tc.refine_warmup) == pytest.approx(first, rel=1e-12)
