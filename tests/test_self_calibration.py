@@ -317,8 +317,9 @@ def test_thresholds_stay_positive_and_finite_under_extreme_gradients():
     assert not torch.isfinite(unguarded).all()  # NaN from the inf / NaN gradients
 
 
-def test_self_calibration_skips_a_non_finite_step():
-    cfg = ball_scene(n_views=6)
+def two_event_sampler(**with_what) -> RaySampler:
+    """A 6-view ball loop with two events: a sampler of 8 rays, 2 windows (with_poses=...,
+    with_parts=...)."""
     index = EventIndex(
         __import__("fastenerf.data.events", fromlist=["EventStream"]).EventStream.from_arrays(
             [1, 2], [1, 2], [1000, 2000], [1, -1], 48, 36
@@ -329,16 +330,14 @@ def test_self_calibration_skips_a_non_finite_step():
         t_end=6000,
         loop=True,
     )
-    s = RaySampler(
-        index,
-        Rig.from_scene(cfg),
-        WindowSampler(6, 0, 6000, 1, 2),
-        rays_per_step=8,
-        windows_per_step=2,
-        neg_ratio=0.5,
-        use_kernel=False,
-        with_parts=True,
-    )
+    rig = Rig.from_scene(ball_scene(n_views=6))
+    windows = WindowSampler(6, 0, 6000, 1, 2)
+    kw = dict(rays_per_step=8, windows_per_step=2, neg_ratio=0.5, use_kernel=False)
+    return RaySampler(index, rig, windows, **kw, **with_what)
+
+
+def test_self_calibration_skips_a_non_finite_step():
+    s = two_event_sampler(with_parts=True)
     cal = SelfCalibration(TrainConfig(estimate_threshold=True), s, (0.25, 0.25), BallField())
     cal.thresholds.log_ratio.grad = torch.tensor(math.nan)
     assert not cal.step() and cal.stats()["calibration_skipped_steps"] == 1
@@ -565,26 +564,7 @@ def test_synth_biased_thresholds_and_mismatch(tmp_path):
 
 @pytest.mark.parametrize("optimizer", ["row-adam", "adam"])
 def test_refine_beta1_is_the_pose_optimisers_momentum(optimizer):
-    cfg = ball_scene(n_views=6)
-    s = RaySampler(
-        EventIndex(
-            __import__("fastenerf.data.events", fromlist=["EventStream"]).EventStream.from_arrays(
-                [1, 2], [1, 2], [1000, 2000], [1, -1], 48, 36
-            ),
-            0.25,
-            0.25,
-            t_start=0,
-            t_end=6000,
-            loop=True,
-        ),
-        Rig.from_scene(cfg),
-        WindowSampler(6, 0, 6000, 1, 2),
-        rays_per_step=8,
-        windows_per_step=2,
-        neg_ratio=0.5,
-        use_kernel=False,
-        with_poses=True,
-    )
+    s = two_event_sampler(with_poses=True)
     tc = TrainConfig(refine_poses=True, refine_beta1=0.98, refine_optimizer=optimizer)
     cal = SelfCalibration(tc, s, (0.25, 0.25), BallField())
     opt = cal.pose_optimizer if optimizer == "row-adam" else cal.optimizer
