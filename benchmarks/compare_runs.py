@@ -14,7 +14,8 @@ import argparse
 import json
 from pathlib import Path
 
-from fastenerf.errors import InputError
+from fastenerf.errors import InputError, require
+from fastenerf.outputs import IMAGE, claim_output
 
 from .cli import benchmark_main
 from .plots import log_x, plt, save_figure
@@ -71,6 +72,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    require(Path(args.out).suffix.lower() == ".png", f"{args.out}: the plot is a .png file")
+    claim_output(args.out, IMAGE, force=None)  # before reading anything: nothing is lost
     print(plot(args.items, args.out, args.title))
     return 0
 

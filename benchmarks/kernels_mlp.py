@@ -22,15 +22,19 @@ from __future__ import annotations
 import argparse
 import contextlib
 import itertools
-import json
 import time
 
 import torch
 
+from benchmarks.cli import benchmark_main
 from benchmarks.timing import time_ms
+from fastenerf.errors import require
 from fastenerf.fields.ngp import _mlp
+from fastenerf.io import write_json
 from fastenerf.kernels.mlp import DEFAULT_BLOCK_DIM, DEFAULT_TILE, fused_mlp
+from fastenerf.outputs import OutputKind, claim_output
 
+JSON_FILE = OutputKind("JSON file", False, lambda p: p.suffix.lower() == ".json")
 SHAPES = {"density": (32, 64, 16, 1), "color": (31, 64, 3, 2)}  # n_in, hidden, n_out, hidden layers
 
 
@@ -151,8 +155,7 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> list[dict]:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--n", type=int, default=2**20, help="rows (samples) per call")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--tiles", type=int, nargs="+", default=[DEFAULT_TILE], help="rows per tile")
@@ -164,8 +167,18 @@ def main(argv=None) -> list[dict]:
     p.add_argument("--col-major", action="store_true", help="x column-major (hash-grid output)")
     p.add_argument("--shapes", nargs="+", default=list(SHAPES), choices=list(SHAPES))
     p.add_argument("--repeats", type=int, default=None, help="timed batches (default 20; CPU 3)")
-    p.add_argument("--out", default=None, help="write the rows as JSON here")
-    a = p.parse_args(argv)
+    p.add_argument("--out", default=None, help="write the rows as JSON here (a .json file)")
+
+
+def run(a: argparse.Namespace) -> int:
+    for name in ("n", "repeats"):
+        v = getattr(a, name)
+        require(v is None or v >= 1, f"--{name} must be at least 1, got {v}")
+    for name in ("tiles", "block_dims", "blocks"):
+        v = getattr(a, name) or []
+        require(all(x >= 1 for x in v), f"--{name.replace('_', '-')} must be at least 1: {v}")
+    if a.out:
+        claim_output(a.out, JSON_FILE, force=None)
     cpu = not str(a.device).startswith("cuda")
     repeats = a.repeats or (3 if cpu else 20)
     rows = []
@@ -184,10 +197,13 @@ def main(argv=None) -> list[dict]:
         )
     print(format_table(rows))
     if a.out:
-        with open(a.out, "w") as f:
-            json.dump(rows, f, indent=1)
-    return rows
+        write_json(a.out, rows)
+    return 0
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    return benchmark_main("kernels_mlp", __doc__, add_arguments, run, argv, prog)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

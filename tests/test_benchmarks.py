@@ -512,3 +512,8 @@ def test_compare_runs_plots_one_panel_per_prefix_and_refuses_a_missing_folder(tm
     assert compare_runs.main([str(tmp_path / "no.png"), f"x={tmp_path / 'c'}"]) == 2
     assert "no error_vs_time.json here" in capsys.readouterr().err
     assert not (tmp_path / "no.png").exists()
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    for bad in (str(notes), str(notes / "x.png"), str(tmp_path / "a")):  # not a png / no folder
+        assert compare_runs.main([bad, items[0]]) == 2
+    assert notes.read_text() == "mine"

@@ -210,8 +210,13 @@ def test_benchmark_smoke_cpu(tmp_path):
     from benchmarks.kernels_mlp import main
 
     out = tmp_path / "mlp.json"
-    rows = main(["--device", "cpu", "--n", "4096", "--repeats", "1", "--out", str(out)])
-    assert json.loads(out.read_text()) == rows
+    assert main(["--device", "cpu", "--n", "4096", "--repeats", "1", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text())
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")  # bad input: one line, exit 2, before any work, nothing touched
+    assert main(["--device", "cpu", "--n", "0"]) == 2
+    assert main(["--device", "cpu", "--n", "64", "--out", str(notes)]) == 2
+    assert notes.read_text() == "mine"
     assert {r["shape"] for r in rows} == {"density", "color"}
     for r in rows:
         assert r["fwd_ms"] > 0 and r["fwdbwd_ms"] > 0 and math.isfinite(r["fwdbwd_ms"])
