@@ -442,9 +442,8 @@ class TrainConfig:
         ok = rays is None or rays >= wins
         _check(ok, where, "rays_per_step", f"must be at least windows_per_step ({wins})")
         self._validate_self_calibration(where)
-        betas = self.adam_betas
-        ok = betas is None or (len(betas) == 2 and all(0.0 <= b < 1.0 for b in betas))
-        _check(ok, where, "adam_betas", f"must be two numbers in [0, 1), got {betas}")
+        ok = (b := self.adam_betas) is None or (len(b) == 2 and all(0 <= x < 1 for x in b))
+        _check(ok, where, "adam_betas", f"must be two numbers in [0, 1), got {b}")
         parse_options(self.backend, self.backend_options, f"{where} backend_options")
         return self
 
@@ -468,8 +467,9 @@ class TrainConfig:
         v = self.refine_start
         _check(v < 1, where, "refine_start", f"must be below 1 (poses never learnt), got {v}")
         g = "mean" if self.refine_gauge == "auto" and self.refine_translation else self.refine_gauge
-        ok = self.refine_shared_until == 0 or (g in ("auto", "none") and not self.refine_shared)
-        _check(ok, where, "refine_shared_until", "needs refine_gauge none and no refine_shared")
+        ok = g in ("auto", "none") and self.refine_poses and not self.refine_shared
+        why = "needs refine_poses, refine_gauge none and no refine_shared"
+        _check(self.refine_shared_until == 0 or ok, where, "refine_shared_until", why)
         ok = self.refine_poses or not self.refine_shared
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")

@@ -352,6 +352,7 @@ class SelfCalibration:
             if self.pose_optimizer is None
             else self.pose_optimizer.state_dict(),
             "skipped_steps": self.skipped_steps,
+            "sharing": self._sharing,  # a resume must still see the switch and forget
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -363,6 +364,7 @@ class SelfCalibration:
         if self.pose_optimizer is not None:
             self.pose_optimizer.load_state_dict(state["pose_optimizer"])
         self.skipped_steps = int(state.get("skipped_steps", 0))
+        self._sharing = bool(state.get("sharing", False))
 
 
 def measured_ratio(scene, cfg: TrainConfig) -> float | None:

@@ -500,6 +500,27 @@ def test_both_options_recorded_checkpointed_and_resumed_exactly(scene, tmp_path)
     assert "threshold_ratio" in progress["self_calibration"]
 
 
+def test_a_run_resumed_in_the_shared_phase_forgets_the_moments_at_the_switch(scene, tmp_path):
+    """A checkpoint taken while the poses share one correction, resumed where each takes its
+    own (4 steps, the switch at the third): the resumed run zeroes the moments at the switch
+    as the whole run does, and ends bit for bit where it does."""
+    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, refine_shared_until=0.5)
+    cfg.update(perturb=PerturbConfig(pose_error_deg=1.0))
+    whole = Trainer(scene, tiny(**cfg), tmp_path / "whole")
+    whole.run(progress=False)
+    part = Trainer(scene, tiny(**cfg), tmp_path / "part")
+    for _ in range(2):
+        part.step()
+    part.save_checkpoint()
+    del part
+    resumed = Trainer(scene, tiny(**cfg), tmp_path / "part", resume=True)
+    resumed.run(progress=False)
+    assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
+    a, b = (t.selfcal.pose_optimizer.state[t.selfcal.poses.delta] for t in (whole, resumed))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert float(a["row_steps"].max()) <= 2  # counted from the switch, not from the start
+
+
 def test_device_paced_step_reads_the_estimates_at_its_flush_only(scene, tmp_path):
     """On the device-paced step the calibration's estimates join the pending stats as device
     tensors: a host read at the step would wait for every queued step, off the training
