@@ -461,6 +461,20 @@ def test_options_off_step_is_what_it_was(scene, tmp_path):
         assert not any(k.startswith(("pose_", "threshold_")) for k in stats)
 
 
+def whole_and_resumed(scene, cfg: dict, tmp_path, steps_before: int = 2):
+    """A whole tiny run, and one checkpointed after `steps_before` steps and resumed."""
+    whole = Trainer(scene, tiny(**cfg), tmp_path / "whole")
+    whole.run(progress=False)
+    part = Trainer(scene, tiny(**cfg), tmp_path / "part")
+    for _ in range(steps_before):
+        part.step()
+    part.save_checkpoint()
+    del part
+    resumed = Trainer(scene, tiny(**cfg), tmp_path / "part", resume=True)
+    resumed.run(progress=False)
+    return whole, resumed
+
+
 def test_both_options_recorded_checkpointed_and_resumed_exactly(scene, tmp_path):
     cfg = dict(
         refine_poses=True,
@@ -468,15 +482,7 @@ def test_both_options_recorded_checkpointed_and_resumed_exactly(scene, tmp_path)
         threshold_per_pixel=True,
         perturb=PerturbConfig(pose_error_deg=1.0),
     )
-    whole = Trainer(scene, tiny(**cfg), tmp_path / "whole")
-    whole.run(progress=False)
-    part = Trainer(scene, tiny(**cfg), tmp_path / "part")
-    for _ in range(2):
-        part.step()
-    part.save_checkpoint()
-    del part
-    resumed = Trainer(scene, tiny(**cfg), tmp_path / "part", resume=True)
-    resumed.run(progress=False)
+    whole, resumed = whole_and_resumed(scene, cfg, tmp_path)
     assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
     assert torch.equal(whole.selfcal.thresholds.pixel, resumed.selfcal.thresholds.pixel)
     assert whole.selfcal.poses.delta.abs().max() > 0  # it did learn something
@@ -506,15 +512,7 @@ def test_a_run_resumed_in_the_shared_phase_forgets_the_moments_at_the_switch(sce
     as the whole run does, and ends bit for bit where it does."""
     cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, refine_shared_until=0.5)
     cfg.update(perturb=PerturbConfig(pose_error_deg=1.0))
-    whole = Trainer(scene, tiny(**cfg), tmp_path / "whole")
-    whole.run(progress=False)
-    part = Trainer(scene, tiny(**cfg), tmp_path / "part")
-    for _ in range(2):
-        part.step()
-    part.save_checkpoint()
-    del part
-    resumed = Trainer(scene, tiny(**cfg), tmp_path / "part", resume=True)
-    resumed.run(progress=False)
+    whole, resumed = whole_and_resumed(scene, cfg, tmp_path)
     assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
     a, b = (t.selfcal.pose_optimizer.state[t.selfcal.poses.delta] for t in (whole, resumed))
     assert all(torch.equal(a[k], b[k]) for k in a)
