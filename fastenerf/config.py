@@ -378,8 +378,7 @@ class TrainConfig:
     refine_poses: bool = False
     """Learn a correction of every training pose (window grid) with the field (own Adam)."""
     refine_translation: bool = False
-    """Also learn the centres' shifts (off: seen from an orbit a small shift and a small turn
-    move the image alike, and learning both drifts along that direction)."""
+    """Also learn the centres' shifts (off: from an orbit a small shift and turn look alike)."""
     refine_lr: float = 3e-3
     """Pose-correction lr at the start (rad, world units per step); decays to refine_lr_final."""
     refine_lr_final: float = 1e-6
@@ -398,25 +397,24 @@ class TrainConfig:
     refine_warmup: float = 0.1
     """Fraction of the pose schedule over which the pose lr ramps up from 0 (0: no ramp)."""
     refine_windows_per_step: int = field(default=64, metadata={"min": 1, "max": 65536})
-    """While refining poses, at least this many windows per step (at most one per ray): every
-    pose row needs frequent visits to learn its correction in a short run."""
+    """While refining poses, at least this many windows per step (each row needs visits)."""
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
-    """adam: one Adam over every pose row (a row no batch sees still moves on its momentum);
-    row-adam: lazy Adam, each row's moments and step only when a batch sees that row."""
+    """adam: one Adam over every pose row; row-adam: lazy, a row steps when a batch sees it."""
     refine_beta1: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
     """The pose Adam's β1 (on noise-only visits m/√v shrinks as √((1 − β1)/(1 + β1)))."""
     refine_gauge: Literal["auto", "mean", "first", "none"] = "auto"
     """Gauge fix: mean (zero-mean corrections), first (first pose fixed), none (free drift);
     auto: none for turns only (the given centres fix the frame), mean with refine_translation."""
     refine_shared: bool = False
-    """One correction shared by every pose, c2w_i · R (a camera mis-mounted on its turntable)
-    instead of one per pose; needs refine_poses; no gauge fix (refine_gauge is ignored)."""
+    """One correction c2w_i · R shared by every pose (a mis-mounted camera); no gauge fix."""
     refine_shared_until: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     """Budget fraction until which every pose takes one shared correction (the rows' summed
     gradient), each its own after (0: per pose throughout); needs the gauge none."""
     refine_decay: float = field(default=30.0, metadata={"min": 0.0, "max": 1e4})
-    """Decoupled decay towards the given poses (a row the batch sees shrinks by pose lr x this):
-    what the events hardly constrain (a slow drift along the trajectory) goes back."""
+    """Decoupled decay towards the given poses: a row a batch sees shrinks by pose lr x this."""
+    refine_gate: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
+    """Significance gate on the pose steps (row-adam; 0: off): a component steps in full once
+    its momentum stands 2 x gate standard errors from zero, not at all below gate."""
     estimate_threshold: bool = False
     """Estimate the thresholds' ratio C_pos/C_neg (product kept: the scale is not observable)."""
     threshold_ratio: Literal["auto", "loop", "learn"] = "auto"
@@ -472,6 +470,8 @@ class TrainConfig:
         _check(self.refine_shared_until == 0 or ok, where, "refine_shared_until", why)
         ok = self.refine_poses or not self.refine_shared
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
+        ok = self.refine_gate == 0 or self.refine_optimizer == "row-adam"
+        _check(ok, where, "refine_gate", "needs refine_optimizer row-adam")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:

@@ -85,8 +85,10 @@ class ScheduledEval(Hook):
     """Evaluates on `ev` at the first step whose training clock passes each of `times` (s),
     hands each point to `on_point(point)` and stops the run after the last one.
 
-    A point: target_s, train_s, step, psnr, ssim, psnr_uncorrected, eval_s, and the means
-    since the previous point of loss, samples_per_step and step_ms.
+    A point: target_s, train_s, step, psnr, ssim, psnr_uncorrected, eval_s, the means
+    since the previous point of loss, samples_per_step and step_ms, and the learnt
+    calibration's latest stats (CALIBRATION_KEYS, where the run learns it): how the poses
+    and thresholds move over a run, not only where they end.
     """
 
     def __init__(self, ev: EvalSet, times: list[float], on_point: Callable[[dict], None]):
@@ -143,6 +145,7 @@ class ScheduledEval(Hook):
             "loss": sum(losses) / len(losses) if losses else float("nan"),
             "samples_per_step": sum(samples) / max(len(samples), 1),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
+            **_latest(self.acc, CALIBRATION_KEYS),
         }
         self._reset()
         self.clock = train_s
@@ -155,6 +158,27 @@ class ScheduledEval(Hook):
     @property
     def finished(self) -> bool:
         return not self.pending
+
+
+CALIBRATION_KEYS = (
+    "pose_correction_deg",
+    "pose_correction_max_deg",
+    "pose_error_deg",
+    "pose_error_aligned_deg",
+    "threshold_pos",
+    "threshold_neg",
+    "threshold_ratio",
+)
+
+
+def _latest(acc: list[dict], keys: tuple[str, ...]) -> dict[str, float]:
+    """The latest value of each of `keys` among the steps' stats `acc` (flushed: floats)."""
+    out: dict[str, float] = {}
+    for stats in reversed(acc):
+        for k in keys:
+            if k not in out and k in stats and not torch.is_tensor(stats[k]):
+                out[k] = float(stats[k])
+    return out
 
 
 class MetricsLog(Hook):

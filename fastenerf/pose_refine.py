@@ -242,13 +242,30 @@ class RowAdam(torch.optim.Optimizer):
     its momentum (about ten steps' worth after each visit, each normalised to the lr), so the
     noise of one visit becomes a full-size step of a pose nothing looked at; and with a gauge
     fix every row gets a tiny gradient (the mean's) that Adam scales up to the lr.
+
+    gate > 0, a significance gate: Adam's m̂/√v̂ is about ±1 on a row's first visits and
+    √((1 − β1)/(1 + β1)) on noise after, so a row whose true correction is zero still walks by
+    a fraction of the lr per visit. Each component's step is scaled by min(1, max(0, z/gate −
+    1)), z = |m̂| / √(ŝ c): the momentum in standard errors of a zero-mean gradient, ŝ the
+    β1-average of its squared gradient (state "gate_sq"), c = (1 − β1)(1 + β1ᵗ) / ((1 + β1)(1 −
+    β1ᵗ)) the variance of a bias-corrected β1-average of t unit draws. A consistent gradient
+    opens it within a few visits (z = 1/√c: 1.0, 1.4, 1.7, 2.0 at t = 1..4).
     """
 
     def __init__(
-        self, params, lr: float, betas=(0.9, 0.999), eps: float = 1e-12, fused: bool = True
+        self,
+        params,
+        lr: float,
+        betas=(0.9, 0.999),
+        eps: float = 1e-12,
+        fused: bool = True,
+        gate: float = 0.0,
     ):
+        if gate < 0:
+            raise ValueError(f"RowAdam: gate must be >= 0, got {gate}")
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
         self.fused = fused  # one Warp launch per float32 parameter (`kernels.pose_rays`)
+        self.gate = float(gate)
 
     def lr_as_tensors(self, device: torch.device) -> None:
         """Each group's lr a (1,) float32 tensor on `device` that the step kernel reads: a
@@ -271,7 +288,7 @@ class RowAdam(torch.optim.Optimizer):
         optional 0-dim device flag (non-zero: step no row, as torch's fused Adam skips);
         decay: decoupled decay (AdamW's, after the Adam update): each row stepped is then
         multiplied by 1 − min(1, lr · decay); 0: none. A parameter without a gradient is
-        skipped, decay included.
+        skipped, decay included. The gate (the class docstring) is the constructor's.
 
         Nothing waits for the device: the fused kernel reads the flags there, and the torch
         reference computes every row and keeps the unseen ones by a select (no boolean
@@ -289,15 +306,21 @@ class RowAdam(torch.optim.Optimizer):
                     st["exp_avg"] = torch.zeros_like(p)
                     st["exp_avg_sq"] = torch.zeros_like(p)
                     st["row_steps"] = torch.zeros(p.shape[0], 1, device=p.device)
+                if self.gate > 0 and "gate_sq" not in st:
+                    st["gate_sq"] = torch.zeros_like(p)
                 if kernels is not None and _fusable(p, st):
                     lr, betas, eps = group["lr"], group["betas"], group["eps"]
-                    kernels.row_adam(p, p.grad, st, rows, found_inf, lr, betas, eps, decay)
+                    kernels.row_adam(
+                        p, p.grad, st, rows, found_inf, lr, betas, eps, decay, self.gate
+                    )
                 else:
-                    self._step_torch(p, st, group, rows, found_inf, decay)
+                    self._step_torch(p, st, group, rows, found_inf, decay, self.gate)
         return None
 
     @staticmethod
-    def _step_torch(p, st: dict, group: dict, rows, found_inf, decay: float = 0.0) -> None:
+    def _step_torch(
+        p, st: dict, group: dict, rows, found_inf, decay: float = 0.0, gate: float = 0.0
+    ) -> None:
         """The reference step of one parameter (any dtype, any device)."""
         b1, b2 = group["betas"]
         seen = p.grad.ne(0).any(-1) if rows is None else rows.to(p.device)
@@ -316,13 +339,25 @@ class RowAdam(torch.optim.Optimizer):
         lr = group["lr"]
         lr = lr.to(p.device, p.dtype).reshape(()) if torch.is_tensor(lr) else lr
         update = lr * m_hat / (v_hat.sqrt() + group["eps"])
+        if gate > 0:
+            update = update * _gate_factor(st, g, s, m_hat, tc, b1, gate)
         p.sub_(torch.where(s, update, torch.zeros_like(update)))
         if decay > 0:  # the ops `SelfCalibration._decay_poses` ran after the step, in order
             rate = (lr * decay).clamp(max=1.0) if torch.is_tensor(lr) else min(1.0, lr * decay)
             p.mul_(1.0 - rate * s.to(p.dtype))
 
 
+def _gate_factor(st: dict, g, seen, m_hat, t, b1: float, gate: float) -> torch.Tensor:
+    """`RowAdam`'s significance gate in [0, 1] (updates st["gate_sq"] on the rows seen)."""
+    sq = torch.where(seen, st["gate_sq"] * b1 + g * g * (1 - b1), st["gate_sq"])
+    st["gate_sq"].copy_(sq)
+    bc1 = 1 - b1**t
+    var = (sq / bc1) * ((1 - b1) * (1 + b1**t) / ((1 + b1) * bc1))
+    z = m_hat.abs() / var.clamp_min(torch.finfo(var.dtype).tiny).sqrt()
+    return torch.where(var > 0, (z / gate - 1).clamp(0.0, 1.0), torch.zeros_like(z))
+
+
 def _fusable(p: torch.Tensor, st: dict) -> bool:
     """The kernel's case: a (G, k) float32 parameter, gradient and state, contiguous."""
-    ts = (p, p.grad, st["exp_avg"], st["exp_avg_sq"], st["row_steps"])
+    ts = (p, p.grad, *(v for v in st.values() if torch.is_tensor(v)))
     return p.ndim == 2 and all(t.dtype == torch.float32 and t.is_contiguous() for t in ts)

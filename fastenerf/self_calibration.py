@@ -106,7 +106,9 @@ class SelfCalibration:
             group = {"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"}
             group["betas"] = betas
             if cfg.refine_optimizer == "row-adam":
-                self.pose_optimizer = RowAdam([group], cfg.refine_lr, betas, ADAM_EPS)
+                self.pose_optimizer = RowAdam(
+                    [group], cfg.refine_lr, betas, ADAM_EPS, gate=cfg.refine_gate
+                )
             else:
                 groups.append(group)
         if cfg.estimate_threshold:

@@ -23,7 +23,7 @@ rays `base_d` as given (the sampler's `render.generate_rays`): at δ = 0 the res
 sampler's rays bit for bit on every device, whatever the kernel's rounding of R'·d.
 
 `row_adam` is `pose_refine.RowAdam`'s lazy row-wise Adam step, with its decoupled decay of the
-rows stepped, in one launch.
+rows stepped and its significance gate, in one launch.
 """
 
 from __future__ import annotations
@@ -445,6 +445,17 @@ def _has_gradient(grad: wp.array2d(dtype=float), g: int) -> bool:
     return False
 
 
+@wp.func
+def _gate_factor(m_hat: float, s_hat: float, c: float, gate: float):
+    """The significance gate's factor in [0, 1]: z = |m̂| / √(ŝ c), the momentum in standard
+    errors of a zero-mean gradient; 0 up to z = gate, 1 from 2 gate, linear between."""
+    var = s_hat * c
+    if var <= 0.0:
+        return 0.0
+    z = wp.abs(m_hat) / wp.sqrt(var)
+    return wp.clamp(z / gate - 1.0, 0.0, 1.0)
+
+
 @wp.kernel(enable_backward=False)
 def _row_adam(
     grad: wp.array2d(dtype=float),
@@ -458,15 +469,19 @@ def _row_adam(
     one_minus_b2: float,
     eps: float,
     decay: float,
+    gate: float,
     param: wp.array2d(dtype=float),
     exp_avg: wp.array2d(dtype=float),
     exp_avg_sq: wp.array2d(dtype=float),
     row_steps: wp.array2d(dtype=float),
+    gate_sq: wp.array2d(dtype=float),
 ):
     """One row: Adam on it if it was seen (rows[g], or any nonzero gradient without `rows`)
     and found_inf[0] is 0, then the decoupled decay: the updated row times 1 − rate, rate =
     min(1, lr · decay) in float32; otherwise the row, its moments and its step count stay.
-    lr_now[0]: the learning rate, read on the device (a captured step replays each step's)."""
+    lr_now[0]: the learning rate, read on the device (a captured step replays each step's).
+    gate > 0: each component's Adam step times `_gate_factor`, with ŝ the β1-average of its
+    squared gradient (gate_sq, the row's recent spread); gate 0 leaves gate_sq untouched."""
     g = wp.tid()
     if found_inf[0] != 0.0:
         return
@@ -481,14 +496,20 @@ def _row_adam(
     bc2 = 1.0 - wp.pow(b2, t)
     lr = lr_now[0]
     keep = 1.0 - wp.min(1.0, lr * decay)
+    # the variance of a β1-average of t unit-variance draws, bias-corrected: 1 at t = 1
+    c = one_minus_b1 * (1.0 + wp.pow(b1, t)) / ((1.0 + b1) * bc1)
     for j in range(grad.shape[1]):
         gj = grad[g, j]
         m = exp_avg[g, j] * b1 + gj * one_minus_b1
         v = exp_avg_sq[g, j] * b2 + gj * gj * one_minus_b2
         exp_avg[g, j] = m
         exp_avg_sq[g, j] = v
-        stepped = param[g, j] - lr * (m / bc1) / (wp.sqrt(v / bc2) + eps)
-        param[g, j] = stepped * keep  # Adam's step first, then the decay (AdamW's, decoupled)
+        step = lr * (m / bc1) / (wp.sqrt(v / bc2) + eps)
+        if gate > 0.0:
+            s = gate_sq[g, j] * b1 + gj * gj * one_minus_b1
+            gate_sq[g, j] = s
+            step = step * _gate_factor(m / bc1, s / bc1, c, gate)
+        param[g, j] = (param[g, j] - step) * keep  # Adam's step, then the decay (AdamW's)
 
 
 def row_adam(
@@ -501,6 +522,7 @@ def row_adam(
     betas: tuple[float, float],
     eps: float,
     decay: float = 0.0,
+    gate: float = 0.0,
 ) -> None:
     """`RowAdam.step` on one (G, k) float32 parameter, in place, one launch.
 
@@ -510,10 +532,11 @@ def row_adam(
     decay); lr: a float, or a 1-element float32 tensor on the parameter's device that the
     kernel reads (what a captured step fills before each replay); decay: decoupled decay
     (AdamW's): each stepped row, after its Adam update, times 1 − min(1, lr · decay) (0: none,
-    bit for bit).
+    bit for bit); gate: the significance gate (`RowAdam`; 0: none, bit for bit), which needs
+    state["gate_sq"] (G, k) float32.
     """
-    if decay < 0:
-        raise ValueError(f"row_adam: decay must be >= 0, got {decay}")
+    if decay < 0 or gate < 0:
+        raise ValueError(f"row_adam: decay and gate must be >= 0, got {decay} and {gate}")
     b1, b2 = (float(b) for b in betas)
     dev = param.device
     flag = _zero(dev) if found_inf is None else found_inf.to(dev, torch.float32).reshape(1)
@@ -526,6 +549,7 @@ def row_adam(
         lr_now = lr.reshape(1)
     else:
         lr_now = torch.full((1,), float(lr), device=dev)
-    args += [lr_now, b1, b2, 1.0 - b1, 1.0 - b2, float(eps), float(decay)]
+    args += [lr_now, b1, b2, 1.0 - b1, 1.0 - b2, float(eps), float(decay), float(gate)]
     args += [param, state["exp_avg"], state["exp_avg_sq"], state["row_steps"]]
+    args += [state["gate_sq"] if gate > 0 else state["exp_avg_sq"]]  # gate 0: never touched
     launch(_row_adam, param.shape[0], param, args)

@@ -155,9 +155,10 @@ def test_graph_body_refines_poses_on_the_cpu(scene, tmp_path):
     device tensors filled before each step, and what they switch (the poses' first step at
     refine_start, every level on at refine_c2f_end, one shared correction until
     refine_shared_until) is in the graph's key. The graphed body takes the plain path's steps
-    bit for bit through every switch, and learns the same poses."""
+    bit for bit through every switch, and learns the same poses (through the gate too)."""
     kw = dict(steps=14, refine_poses=True, refine_start=0.2, refine_warmup=0.0)
     kw.update(refine_c2f_start=0.0, refine_c2f_end=0.6, refine_shared_until=0.4)
+    kw.update(refine_gate=0.5)  # the gate's state and factor in the graph too (0.5: it opens)
     plain = make(scene, tmp_path / "plain", "plain", **kw)
     a = losses(plain, 14)
     graph = make(scene, tmp_path / "graph", "graph", **kw)

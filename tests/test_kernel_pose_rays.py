@@ -167,11 +167,15 @@ def test_row_adam_kernel_without_found_inf_and_unseen_rows_kept():
     assert opt.state[p]["row_steps"][:, 0].tolist() == [1, 0, 1, 0]
 
 
-def _row_adam_float64(p, grads, rows, flags, lrs, decay, b1=0.9, b2=0.999, eps=1e-12):
+def _row_adam_float64(p, grads, rows, flags, lrs, decay, b1=0.9, b2=0.999, eps=1e-12, gate=0.0):
     """The lazy row Adam with its decoupled decay, row by row in float64: a row the batch saw
-    (on a step without found_inf) takes Adam's step, then is multiplied by 1 − min(1, lr·decay)."""
+    (on a step without found_inf) takes Adam's step, then is multiplied by 1 − min(1, lr·decay).
+    gate > 0: each component's step times clamp(z / gate − 1, 0, 1), z = |m̂| / √(ŝ c), ŝ the
+    bias-corrected β1-average of g², c the variance of a bias-corrected β1-average of t unit
+    draws, Σw² / (Σw)² with w_i = β1^(t−i) summed term by term."""
     p = p.double().clone()
     m, v, t = torch.zeros_like(p), torch.zeros_like(p), [0] * len(p)
+    sq = torch.zeros_like(p)
     for g_all, seen, skip, lr in zip(grads, rows, flags, lrs, strict=True):
         for r in range(len(p)) if not skip else ():
             if not seen[r]:
@@ -181,8 +185,46 @@ def _row_adam_float64(p, grads, rows, flags, lrs, decay, b1=0.9, b2=0.999, eps=1
             m[r] = b1 * m[r] + (1 - b1) * g
             v[r] = b2 * v[r] + (1 - b2) * g * g
             step = lr * (m[r] / (1 - b1 ** t[r])) / ((v[r] / (1 - b2 ** t[r])).sqrt() + eps)
+            if gate > 0:
+                sq[r] = b1 * sq[r] + (1 - b1) * g * g
+                w = [b1 ** (t[r] - i) for i in range(1, t[r] + 1)]
+                c = sum(x * x for x in w) / sum(w) ** 2
+                z = (m[r] / (1 - b1 ** t[r])).abs() / (sq[r] / (1 - b1 ** t[r]) * c).sqrt()
+                step = step * (z / gate - 1).clamp(0.0, 1.0)
             p[r] = (p[r] - step) * (1 - min(1.0, lr * decay))
     return p
+
+
+@pytest.mark.parametrize("gate", [0.5, 1.0, 2.0])
+@pytest.mark.parametrize("fused", [True, False])
+@pytest.mark.parametrize("device", DEVICES)
+def test_row_adam_gate_matches_float64(gate, fused, device):
+    """The significance gate (kernel and torch step) against the float64 reference, with the
+    decay and a skipped step: gradients with a common part and noise, so that some components
+    open, some stay shut and some are in between. gate_sq changes only on the rows stepped."""
+    gen = torch.Generator().manual_seed(6)
+    start = torch.randn(G, 6, generator=gen)
+    p = torch.nn.Parameter(start.clone().to(device))
+    opt = RowAdam([p], lr=1e-2, eps=1e-12, fused=fused, gate=gate)
+    bias = torch.randn(G, 6, generator=gen)
+    grads, rows, flags, lrs = [], [], [], []
+    for step in range(12):
+        g = bias + torch.randn(G, 6, generator=gen)
+        seen = torch.rand(G, generator=gen) < 0.7
+        lr, skip = 1e-2 * 0.9**step, step == 5
+        p.grad = g.to(device)
+        opt.param_groups[0]["lr"] = lr
+        sq_before = opt.state[p]["gate_sq"].clone() if opt.state[p] else None
+        opt.step(seen.to(device), found_inf=torch.tensor(float(skip), device=device), decay=4.0)
+        if sq_before is not None:
+            keep = (torch.ones(G, dtype=torch.bool) if skip else ~seen).to(device)
+            assert torch.equal(opt.state[p]["gate_sq"][keep], sq_before[keep])
+        grads, rows, flags, lrs = grads + [g], rows + [seen], flags + [skip], lrs + [lr]
+    want = _row_adam_float64(start, grads, rows, flags, lrs, 4.0, gate=gate)
+    torch.testing.assert_close(p.detach().cpu().double(), want, atol=1e-7, rtol=1e-5)
+    moved = (p.detach().cpu().double() - start.double()).abs()
+    ungated = _row_adam_float64(start, grads, rows, flags, lrs, 4.0)
+    assert (moved < (ungated - start.double()).abs() - 1e-6).any()  # the gate held some back
 
 
 @pytest.mark.parametrize("decay", [0.0, 4.0, 150.0])  # lr·decay 0, up to 0.04, >= 1 at first
@@ -232,11 +274,13 @@ def test_row_adam_decay_matches_float64(decay, fused, device, lr_tensor):
         assert torch.equal(q.detach(), p.detach())
 
 
-def test_row_adam_decay_rejects_a_negative_decay():
+def test_row_adam_decay_rejects_a_negative_decay_and_gate():
     p = torch.nn.Parameter(torch.zeros(2, 6))
     p.grad = torch.ones(2, 6)
     with pytest.raises(ValueError, match="decay"):
         RowAdam([p], lr=1e-2).step(torch.tensor([True, False]), decay=-1.0)
+    with pytest.raises(ValueError, match="gate"):
+        RowAdam([p], lr=1e-2, gate=-1.0)
 
 
 @pytest.mark.parametrize("layout", ["runs", "shuffled"])

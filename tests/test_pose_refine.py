@@ -52,6 +52,31 @@ def test_row_adam_moves_only_the_rows_seen_and_is_adam_on_them():
     assert (q[0] - before).abs().max() > 0.5e-2  # a full-size step with a zero gradient
 
 
+@pytest.mark.parametrize("fused", [True, False])
+def test_row_adam_gate_holds_noise_and_passes_a_consistent_gradient(fused):
+    """refine_gate: rows whose gradient is zero-mean noise (a pose already right) walk far less
+    than under plain row Adam, whose m̂/√v̂ is ±1 on a row's first visits and ~0.23 on noise
+    after (measured: ÷5.5 at gate 1.5); rows with a steady gradient under the same noise (SNR
+    1) move nearly as far (90 %)."""
+    gen = torch.Generator().manual_seed(3)
+    rows, visits = 64, 300
+    mean = torch.zeros(rows, 6)
+    mean[rows // 2 :] = 1.0  # the second half: a consistent pull
+    grads = [mean + torch.randn(rows, 6, generator=gen) for _ in range(visits)]
+    moved = {}
+    for gate in (0.0, 1.5):
+        p = torch.nn.Parameter(torch.zeros(rows, 6))
+        opt = RowAdam([p], lr=1e-3, fused=fused, gate=gate)
+        for g in grads:
+            p.grad = g.clone()
+            opt.step(torch.ones(rows, dtype=torch.bool))
+        moved[gate] = p.detach().abs()
+    noise_plain, noise_gated = (m[: rows // 2].mean() for m in moved.values())
+    signal_plain, signal_gated = (m[rows // 2 :].mean() for m in moved.values())
+    assert noise_gated < 0.3 * noise_plain, (noise_gated, noise_plain)
+    assert signal_gated > 0.8 * signal_plain, (signal_gated, signal_plain)
+
+
 def test_row_adam_state_round_trips():
     p = torch.nn.Parameter(torch.zeros(3, 2))
     opt = RowAdam([p], lr=1e-2)
