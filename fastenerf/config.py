@@ -306,8 +306,7 @@ class TrainConfig:
     """Longest event window, views. Default: 50 synthetic / 100 real views of a 1000-view
     loop (the reference's), scaled by n_views / 1000."""
     win_redraw: Literal["step", "load"] = "step"
-    """When window lengths are drawn: every step (ours), or once per end view at load time
-    (load, the reference's)."""
+    """When window lengths are drawn: every step (ours), or once per end view at load (ref.)."""
     neg_ratio: float | None = field(default=None, metadata={"min": 0.0, "max": 1.0})
     """Fraction of each batch drawn at uniform pixels (negative sampling; the rest among pixels
     with events in their window). Default: 0.1 synthetic, 0.05 real."""
@@ -319,8 +318,7 @@ class TrainConfig:
     lr: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
     """Initial learning rate. Default: by backend (ngp 1e-2, vanilla 5e-4)."""
     lr_final: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
-    """Learning rate at the end of the budget, reached by exponential decay; unset: constant
-    (fast preset: lr / 10)."""
+    """Learning rate at the end of the budget (exponential decay; unset: constant; fast: lr/10)."""
     lr_decay_start: float = field(default=0.0, metadata={"min": 0.0, "max": 0.99})
     """Budget fraction spent at `lr` before the decay to lr_final starts (instant-ngp decays
     late; fast preset 0.7); 0: from the first step."""
@@ -414,7 +412,9 @@ class TrainConfig:
     """Decoupled decay towards the given poses: a row a batch sees shrinks by pose lr x this."""
     refine_gate: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
     """Significance gate on the pose steps (row-adam; 0: off): a component steps in full once
-    its momentum stands 2 x gate standard errors from zero, not at all below gate."""
+    its mean gradient stands 2 x gate standard errors from zero, not at all below gate."""
+    refine_gate_beta: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
+    """The gate's averaging of a row's gradients (β; ~1/(1 − β) visits)."""
     estimate_threshold: bool = False
     """Estimate the thresholds' ratio C_pos/C_neg (product kept: the scale is not observable)."""
     threshold_ratio: Literal["auto", "loop", "learn"] = "auto"

@@ -246,10 +246,12 @@ class RowAdam(torch.optim.Optimizer):
     gate > 0, a significance gate: Adam's m̂/√v̂ is about ±1 on a row's first visits and
     √((1 − β1)/(1 + β1)) on noise after, so a row whose true correction is zero still walks by
     a fraction of the lr per visit. Each component's step is scaled by min(1, max(0, z/gate −
-    1)), z = |m̂| / √(ŝ c): the momentum in standard errors of a zero-mean gradient, ŝ the
-    β1-average of its squared gradient (state "gate_sq"), c = (1 − β1)(1 + β1ᵗ) / ((1 + β1)(1 −
-    β1ᵗ)) the variance of a bias-corrected β1-average of t unit draws. A consistent gradient
-    opens it within a few visits (z = 1/√c: 1.0, 1.4, 1.7, 2.0 at t = 1..4).
+    1)), z = |ḡ| / √(ŝ c): the mean gradient in standard errors of a zero-mean one, ḡ and ŝ
+    the bias-corrected gate_beta-averages of the gradient and its square (state "gate_m",
+    "gate_sq"), c = (1 − β)(1 + βᵗ) / ((1 + β)(1 − βᵗ)) the variance of such an average of t
+    unit draws. A consistent gradient opens it within a few visits (β 0.9: z = 1/√c = 1.0,
+    1.4, 1.7, 2.0 at t = 1..4); a longer average (β nearer 1) also finds a weak steady pull,
+    z ≈ SNR·√((1 + β)/(1 − β)) per visit.
     """
 
     def __init__(
@@ -260,12 +262,14 @@ class RowAdam(torch.optim.Optimizer):
         eps: float = 1e-12,
         fused: bool = True,
         gate: float = 0.0,
+        gate_beta: float = 0.9,
     ):
-        if gate < 0:
-            raise ValueError(f"RowAdam: gate must be >= 0, got {gate}")
+        if gate < 0 or not 0 <= gate_beta < 1:
+            why = f"gate must be >= 0 and gate_beta in [0, 1), got {gate} and {gate_beta}"
+            raise ValueError(f"RowAdam: {why}")
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
         self.fused = fused  # one Warp launch per float32 parameter (`kernels.pose_rays`)
-        self.gate = float(gate)
+        self.gate, self.gate_beta = float(gate), float(gate_beta)
 
     def lr_as_tensors(self, device: torch.device) -> None:
         """Each group's lr a (1,) float32 tensor on `device` that the step kernel reads: a
@@ -306,20 +310,21 @@ class RowAdam(torch.optim.Optimizer):
                     st["exp_avg"] = torch.zeros_like(p)
                     st["exp_avg_sq"] = torch.zeros_like(p)
                     st["row_steps"] = torch.zeros(p.shape[0], 1, device=p.device)
-                if self.gate > 0 and "gate_sq" not in st:
-                    st["gate_sq"] = torch.zeros_like(p)
+                for key in ("gate_m", "gate_sq") if self.gate > 0 else ():
+                    if key not in st:
+                        st[key] = torch.zeros_like(p)
                 if kernels is not None and _fusable(p, st):
                     lr, betas, eps = group["lr"], group["betas"], group["eps"]
-                    kernels.row_adam(
-                        p, p.grad, st, rows, found_inf, lr, betas, eps, decay, self.gate
-                    )
+                    gate = (self.gate, self.gate_beta)
+                    kernels.row_adam(p, p.grad, st, rows, found_inf, lr, betas, eps, decay, *gate)
                 else:
-                    self._step_torch(p, st, group, rows, found_inf, decay, self.gate)
+                    gate = (self.gate, self.gate_beta)
+                    self._step_torch(p, st, group, rows, found_inf, decay, gate)
         return None
 
     @staticmethod
     def _step_torch(
-        p, st: dict, group: dict, rows, found_inf, decay: float = 0.0, gate: float = 0.0
+        p, st: dict, group: dict, rows, found_inf, decay: float = 0.0, gate=(0.0, 0.9)
     ) -> None:
         """The reference step of one parameter (any dtype, any device)."""
         b1, b2 = group["betas"]
@@ -339,21 +344,24 @@ class RowAdam(torch.optim.Optimizer):
         lr = group["lr"]
         lr = lr.to(p.device, p.dtype).reshape(()) if torch.is_tensor(lr) else lr
         update = lr * m_hat / (v_hat.sqrt() + group["eps"])
-        if gate > 0:
-            update = update * _gate_factor(st, g, s, m_hat, tc, b1, gate)
+        if gate[0] > 0:
+            update = update * _gate_factor(st, g, s, tc, *gate)
         p.sub_(torch.where(s, update, torch.zeros_like(update)))
         if decay > 0:  # the ops `SelfCalibration._decay_poses` ran after the step, in order
             rate = (lr * decay).clamp(max=1.0) if torch.is_tensor(lr) else min(1.0, lr * decay)
             p.mul_(1.0 - rate * s.to(p.dtype))
 
 
-def _gate_factor(st: dict, g, seen, m_hat, t, b1: float, gate: float) -> torch.Tensor:
-    """`RowAdam`'s significance gate in [0, 1] (updates st["gate_sq"] on the rows seen)."""
-    sq = torch.where(seen, st["gate_sq"] * b1 + g * g * (1 - b1), st["gate_sq"])
+def _gate_factor(st: dict, g, seen, t, gate: float, b: float) -> torch.Tensor:
+    """`RowAdam`'s significance gate in [0, 1] (updates st["gate_m"], st["gate_sq"] on the rows
+    seen); t: (G, 1) the rows' visits."""
+    m = torch.where(seen, st["gate_m"] * b + g * (1 - b), st["gate_m"])
+    sq = torch.where(seen, st["gate_sq"] * b + g * g * (1 - b), st["gate_sq"])
+    st["gate_m"].copy_(m)
     st["gate_sq"].copy_(sq)
-    bc1 = 1 - b1**t
-    var = (sq / bc1) * ((1 - b1) * (1 + b1**t) / ((1 + b1) * bc1))
-    z = m_hat.abs() / var.clamp_min(torch.finfo(var.dtype).tiny).sqrt()
+    bc = 1 - b**t
+    var = (sq / bc) * ((1 - b) * (1 + b**t) / ((1 + b) * bc))
+    z = (m / bc).abs() / var.clamp_min(torch.finfo(var.dtype).tiny).sqrt()
     return torch.where(var > 0, (z / gate - 1).clamp(0.0, 1.0), torch.zeros_like(z))
 
 

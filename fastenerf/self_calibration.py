@@ -106,9 +106,8 @@ class SelfCalibration:
             group = {"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"}
             group["betas"] = betas
             if cfg.refine_optimizer == "row-adam":
-                self.pose_optimizer = RowAdam(
-                    [group], cfg.refine_lr, betas, ADAM_EPS, gate=cfg.refine_gate
-                )
+                gate = {"gate": cfg.refine_gate, "gate_beta": cfg.refine_gate_beta}
+                self.pose_optimizer = RowAdam([group], cfg.refine_lr, betas, ADAM_EPS, **gate)
             else:
                 groups.append(group)
         if cfg.estimate_threshold:

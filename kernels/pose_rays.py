@@ -470,18 +470,20 @@ def _row_adam(
     eps: float,
     decay: float,
     gate: float,
+    gate_b: float,
     param: wp.array2d(dtype=float),
     exp_avg: wp.array2d(dtype=float),
     exp_avg_sq: wp.array2d(dtype=float),
     row_steps: wp.array2d(dtype=float),
+    gate_m: wp.array2d(dtype=float),
     gate_sq: wp.array2d(dtype=float),
 ):
     """One row: Adam on it if it was seen (rows[g], or any nonzero gradient without `rows`)
     and found_inf[0] is 0, then the decoupled decay: the updated row times 1 − rate, rate =
     min(1, lr · decay) in float32; otherwise the row, its moments and its step count stay.
     lr_now[0]: the learning rate, read on the device (a captured step replays each step's).
-    gate > 0: each component's Adam step times `_gate_factor`, with ŝ the β1-average of its
-    squared gradient (gate_sq, the row's recent spread); gate 0 leaves gate_sq untouched."""
+    gate > 0: each component's Adam step times `_gate_factor` of the gate_b-averages of its
+    gradient and squared gradient (gate_m, gate_sq); gate 0 leaves both untouched."""
     g = wp.tid()
     if found_inf[0] != 0.0:
         return
@@ -496,8 +498,9 @@ def _row_adam(
     bc2 = 1.0 - wp.pow(b2, t)
     lr = lr_now[0]
     keep = 1.0 - wp.min(1.0, lr * decay)
-    # the variance of a β1-average of t unit-variance draws, bias-corrected: 1 at t = 1
-    c = one_minus_b1 * (1.0 + wp.pow(b1, t)) / ((1.0 + b1) * bc1)
+    # the variance of a bias-corrected gate_b-average of t unit-variance draws: 1 at t = 1
+    bcg = 1.0 - wp.pow(gate_b, t)
+    c = (1.0 - gate_b) * (1.0 + wp.pow(gate_b, t)) / ((1.0 + gate_b) * bcg)
     for j in range(grad.shape[1]):
         gj = grad[g, j]
         m = exp_avg[g, j] * b1 + gj * one_minus_b1
@@ -506,9 +509,11 @@ def _row_adam(
         exp_avg_sq[g, j] = v
         step = lr * (m / bc1) / (wp.sqrt(v / bc2) + eps)
         if gate > 0.0:
-            s = gate_sq[g, j] * b1 + gj * gj * one_minus_b1
+            gm = gate_m[g, j] * gate_b + gj * (1.0 - gate_b)
+            s = gate_sq[g, j] * gate_b + gj * gj * (1.0 - gate_b)
+            gate_m[g, j] = gm
             gate_sq[g, j] = s
-            step = step * _gate_factor(m / bc1, s / bc1, c, gate)
+            step = step * _gate_factor(gm / bcg, s / bcg, c, gate)
         param[g, j] = (param[g, j] - step) * keep  # Adam's step, then the decay (AdamW's)
 
 
@@ -523,6 +528,7 @@ def row_adam(
     eps: float,
     decay: float = 0.0,
     gate: float = 0.0,
+    gate_beta: float = 0.9,
 ) -> None:
     """`RowAdam.step` on one (G, k) float32 parameter, in place, one launch.
 
@@ -532,8 +538,8 @@ def row_adam(
     decay); lr: a float, or a 1-element float32 tensor on the parameter's device that the
     kernel reads (what a captured step fills before each replay); decay: decoupled decay
     (AdamW's): each stepped row, after its Adam update, times 1 − min(1, lr · decay) (0: none,
-    bit for bit); gate: the significance gate (`RowAdam`; 0: none, bit for bit), which needs
-    state["gate_sq"] (G, k) float32.
+    bit for bit); gate, gate_beta: the significance gate (`RowAdam`; 0: none, bit for bit),
+    which needs state["gate_m"] and state["gate_sq"] (G, k) float32.
     """
     if decay < 0 or gate < 0:
         raise ValueError(f"row_adam: decay and gate must be >= 0, got {decay} and {gate}")
@@ -550,6 +556,7 @@ def row_adam(
     else:
         lr_now = torch.full((1,), float(lr), device=dev)
     args += [lr_now, b1, b2, 1.0 - b1, 1.0 - b2, float(eps), float(decay), float(gate)]
-    args += [param, state["exp_avg"], state["exp_avg_sq"], state["row_steps"]]
-    args += [state["gate_sq"] if gate > 0 else state["exp_avg_sq"]]  # gate 0: never touched
+    args += [float(gate_beta), param, state["exp_avg"], state["exp_avg_sq"], state["row_steps"]]
+    gated = gate > 0  # gate 0: the two are never touched
+    args += [state["gate_m"] if gated else param, state["gate_sq"] if gated else param]
     launch(_row_adam, param.shape[0], param, args)

@@ -167,15 +167,17 @@ def test_row_adam_kernel_without_found_inf_and_unseen_rows_kept():
     assert opt.state[p]["row_steps"][:, 0].tolist() == [1, 0, 1, 0]
 
 
-def _row_adam_float64(p, grads, rows, flags, lrs, decay, b1=0.9, b2=0.999, eps=1e-12, gate=0.0):
+def _row_adam_float64(
+    p, grads, rows, flags, lrs, decay, b1=0.9, b2=0.999, eps=1e-12, gate=0.0, gate_beta=0.9
+):
     """The lazy row Adam with its decoupled decay, row by row in float64: a row the batch saw
     (on a step without found_inf) takes Adam's step, then is multiplied by 1 − min(1, lr·decay).
-    gate > 0: each component's step times clamp(z / gate − 1, 0, 1), z = |m̂| / √(ŝ c), ŝ the
-    bias-corrected β1-average of g², c the variance of a bias-corrected β1-average of t unit
-    draws, Σw² / (Σw)² with w_i = β1^(t−i) summed term by term."""
+    gate > 0: each component's step times clamp(z / gate − 1, 0, 1), z = |ḡ| / √(ŝ c), ḡ and ŝ
+    the bias-corrected gate_beta-averages of g and g², c the variance of such an average of t
+    unit draws, Σw² / (Σw)² with w_i = β^(t−i) summed term by term."""
     p = p.double().clone()
     m, v, t = torch.zeros_like(p), torch.zeros_like(p), [0] * len(p)
-    sq = torch.zeros_like(p)
+    gm, sq = torch.zeros_like(p), torch.zeros_like(p)
     for g_all, seen, skip, lr in zip(grads, rows, flags, lrs, strict=True):
         for r in range(len(p)) if not skip else ():
             if not seen[r]:
@@ -186,26 +188,28 @@ def _row_adam_float64(p, grads, rows, flags, lrs, decay, b1=0.9, b2=0.999, eps=1
             v[r] = b2 * v[r] + (1 - b2) * g * g
             step = lr * (m[r] / (1 - b1 ** t[r])) / ((v[r] / (1 - b2 ** t[r])).sqrt() + eps)
             if gate > 0:
-                sq[r] = b1 * sq[r] + (1 - b1) * g * g
-                w = [b1 ** (t[r] - i) for i in range(1, t[r] + 1)]
+                bg = gate_beta
+                gm[r] = bg * gm[r] + (1 - bg) * g
+                sq[r] = bg * sq[r] + (1 - bg) * g * g
+                w = [bg ** (t[r] - i) for i in range(1, t[r] + 1)]
                 c = sum(x * x for x in w) / sum(w) ** 2
-                z = (m[r] / (1 - b1 ** t[r])).abs() / (sq[r] / (1 - b1 ** t[r]) * c).sqrt()
+                z = (gm[r] / (1 - bg ** t[r])).abs() / (sq[r] / (1 - bg ** t[r]) * c).sqrt()
                 step = step * (z / gate - 1).clamp(0.0, 1.0)
             p[r] = (p[r] - step) * (1 - min(1.0, lr * decay))
     return p
 
 
-@pytest.mark.parametrize("gate", [0.5, 1.0, 2.0])
+@pytest.mark.parametrize("gate,gate_beta", [(0.5, 0.9), (1.0, 0.9), (2.0, 0.9), (1.5, 0.99)])
 @pytest.mark.parametrize("fused", [True, False])
 @pytest.mark.parametrize("device", DEVICES)
-def test_row_adam_gate_matches_float64(gate, fused, device):
+def test_row_adam_gate_matches_float64(gate, gate_beta, fused, device):
     """The significance gate (kernel and torch step) against the float64 reference, with the
     decay and a skipped step: gradients with a common part and noise, so that some components
     open, some stay shut and some are in between. gate_sq changes only on the rows stepped."""
     gen = torch.Generator().manual_seed(6)
     start = torch.randn(G, 6, generator=gen)
     p = torch.nn.Parameter(start.clone().to(device))
-    opt = RowAdam([p], lr=1e-2, eps=1e-12, fused=fused, gate=gate)
+    opt = RowAdam([p], lr=1e-2, eps=1e-12, fused=fused, gate=gate, gate_beta=gate_beta)
     bias = torch.randn(G, 6, generator=gen)
     grads, rows, flags, lrs = [], [], [], []
     for step in range(12):
@@ -219,8 +223,9 @@ def test_row_adam_gate_matches_float64(gate, fused, device):
         if sq_before is not None:
             keep = (torch.ones(G, dtype=torch.bool) if skip else ~seen).to(device)
             assert torch.equal(opt.state[p]["gate_sq"][keep], sq_before[keep])
+        assert "gate_m" in opt.state[p]
         grads, rows, flags, lrs = grads + [g], rows + [seen], flags + [skip], lrs + [lr]
-    want = _row_adam_float64(start, grads, rows, flags, lrs, 4.0, gate=gate)
+    want = _row_adam_float64(start, grads, rows, flags, lrs, 4.0, gate=gate, gate_beta=gate_beta)
     torch.testing.assert_close(p.detach().cpu().double(), want, atol=1e-7, rtol=1e-5)
     moved = (p.detach().cpu().double() - start.double()).abs()
     ungated = _row_adam_float64(start, grads, rows, flags, lrs, 4.0)
