@@ -410,10 +410,10 @@ class TrainConfig:
     gradient), each its own after (0: per pose throughout); needs the gauge none."""
     refine_decay: float = field(default=30.0, metadata={"min": 0.0, "max": 1e4})
     """Decoupled decay towards the given poses: a row a batch sees shrinks by pose lr x this."""
-    refine_gate: float = field(default=0.0, metadata={"min": 0.0, "max": 100.0})
-    """Significance gate on the pose steps (row-adam; 0: off): a component steps in full once
-    its mean gradient stands 2 x gate standard errors from zero, not at all below gate."""
-    refine_gate_beta: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
+    refine_gate: float = field(default=1.5, metadata={"min": 0.0, "max": 100.0})
+    """Significance gate on the row-adam's pose steps (0: off; adam has none): a component steps
+    in full once its mean gradient stands 2 x gate standard errors from zero, none below gate."""
+    refine_gate_beta: float = field(default=0.99, metadata={"min": 0.0, "max": 0.9999})
     """The gate's averaging of a row's gradients (β; ~1/(1 − β) visits)."""
     estimate_threshold: bool = False
     """Estimate the thresholds' ratio C_pos/C_neg (product kept: the scale is not observable)."""
@@ -470,8 +470,6 @@ class TrainConfig:
         _check(self.refine_shared_until == 0 or ok, where, "refine_shared_until", why)
         ok = self.refine_poses or not self.refine_shared
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
-        ok = self.refine_gate == 0 or self.refine_optimizer == "row-adam"
-        _check(ok, where, "refine_gate", "needs refine_optimizer row-adam")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:

@@ -481,9 +481,12 @@ def test_both_options_recorded_checkpointed_and_resumed_exactly(scene, tmp_path)
         estimate_threshold=True,
         threshold_per_pixel=True,
         perturb=PerturbConfig(pose_error_deg=1.0),
+        refine_gate=0.5,  # open within these few visits: the gate's state resumes too
     )
     whole, resumed = whole_and_resumed(scene, cfg, tmp_path)
     assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
+    gate_state = (t.selfcal.pose_optimizer.state[t.selfcal.poses.delta] for t in (whole, resumed))
+    assert torch.equal(*(st["gate_m"] for st in gate_state))
     assert torch.equal(whole.selfcal.thresholds.pixel, resumed.selfcal.thresholds.pixel)
     assert whole.selfcal.poses.delta.abs().max() > 0  # it did learn something
     a, r = field_state(whole), field_state(resumed)
