@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -92,6 +93,26 @@ def test_scheduled_eval_takes_points_and_stops(scene, tmp_path):
     assert all(p["psnr"] > 0 and p["step"] >= 1 for p in points)
     prog = json.loads((tmp_path / "run" / "progress.json").read_text())
     assert prog["step"] == summary["steps"]
+
+
+def test_scheduled_eval_points_carry_the_learnt_calibration(scene, tmp_path):
+    """With the poses and thresholds learnt, each point has their stats at that time (how
+    they move over a run); without, none of those keys."""
+    from fastenerf.evaluate import make_eval_set
+    from fastenerf.hooks import CALIBRATION_KEYS
+
+    ev = make_eval_set(scene, 1, 0.25)
+    for learnt in (True, False):
+        points = []
+        cfg = tiny_cfg(steps=1000, refine_poses=learnt, estimate_threshold=learnt)
+        trainer = Trainer(scene, cfg, tmp_path / f"run{learnt}")
+        trainer.run([ScheduledEval(ev, [1e-9, 2e-9], points.append)])
+        assert points
+        for p in points:
+            keys = {k for k in CALIBRATION_KEYS if k in p}
+            want = {"pose_correction_deg", "pose_correction_max_deg", "threshold_pos"}
+            assert want <= keys if learnt else not keys
+            assert all(math.isfinite(p[k]) for k in keys)
 
 
 class _ClockJump(Hook):
