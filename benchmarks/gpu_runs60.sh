@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Budgeted error-vs-time runs on the lent GPU, one after another (each run's clock is its own:
+# two at once would share the GPU and undercount nothing but halve each one's steps).
+#
+#   bash benchmarks/gpu_runs60.sh DATA OUT RUNS [COMMIT]
+#
+# RUNS is a file of lines "NAME SCENE [KEY=VALUE ...]" ('#' starts a comment); each line is
+# `python -m benchmarks.error_vs_time --scenes DATA/SCENE --backends ngp --budget-s
+# ngp=$BUDGET_S --set KEY=VALUE ...` into OUT/SCENE/NAME (BUDGET_S 60 unless set). A value
+# with spaces or quotes goes in as one word, e.g. perturb={"pose_error_deg":1.0}. OUT/all.done
+# appears at the end; OUT/partial.tgz holds every JSON and log so far (checkpoints deleted).
+# On the lent machine: start it detached (setsid nohup ... &) and keep a call in flight
+# (the machine goes back 30 s after a call returns, and the run with it).
+set -u
+DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); RUNS=$(realpath "$3"); COMMIT=${4:-unknown}
+BUDGET_S=${BUDGET_S:-60}; DEVICE=${DEVICE:-cuda}
+source "$(dirname "$0")/gpu_env.sh"
+log() {
+    echo "[$(date +%T) +$(($(date +%s) - T0))s] $*" >> "$OUT/progress.log"
+    (cd "$OUT" && tar czf partial.tgz.tmp --exclude='*.pt' ./*.log ./*/*/*.json 2>/dev/null
+     mv -f partial.tgz.tmp partial.tgz)
+}
+log "start: $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1), commit $COMMIT"
+while read -r name scene sets; do
+    case "$name" in '' | '#'*) continue ;; esac
+    read -r -a kv <<< "$sets"
+    dir="$OUT/$scene/$name"
+    $PY -m benchmarks.error_vs_time --scenes "$DATA/$scene" --backends ngp \
+        --budget-s "ngp=$BUDGET_S" --device "$DEVICE" --quiet --commit "$COMMIT" --out "$dir" \
+        ${kv[@]:+--set "${kv[@]}"} > "$OUT/$scene-$name.log" 2>&1
+    rc=$?
+    find "$dir" -name '*.pt' -delete 2>/dev/null
+    log "$scene $name rc $rc"
+done < "$RUNS"
+log "all done"
+touch "$OUT/all.done"
