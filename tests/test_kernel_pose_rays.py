@@ -279,6 +279,22 @@ def test_row_adam_decay_matches_float64(decay, fused, device, lr_tensor):
         assert torch.equal(q.detach(), p.detach())
 
 
+@pytest.mark.parametrize("fused", [True, False])
+@pytest.mark.parametrize("device", DEVICES)
+def test_row_adam_gate_on_components_without_gradient_stays_finite(fused, device):
+    """A seen row whose gradient is exactly zero in some components (the shift columns when
+    only turns are learnt are masked to zero on every step) has ŝ = 0 there: the gate's z would
+    be 0/0. Those components stay as they were (no NaN), the others step."""
+    p = torch.nn.Parameter(torch.zeros(G, 6, device=device))
+    opt = RowAdam([p], lr=1e-2, eps=1e-12, fused=fused, gate=0.5)
+    for _ in range(5):
+        g = torch.zeros(G, 6, device=device)
+        g[:, :3] = 1.0  # turns: a steady pull; shifts: none
+        p.grad = g
+        opt.step(torch.ones(G, dtype=torch.bool, device=device))
+    assert torch.isfinite(p).all() and (p[:, 3:] == 0).all() and (p[:, :3] < 0).all()
+
+
 def test_row_adam_decay_rejects_a_negative_decay_and_gate():
     p = torch.nn.Parameter(torch.zeros(2, 6))
     p.grad = torch.ones(2, 6)
