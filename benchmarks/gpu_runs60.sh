@@ -11,8 +11,16 @@
 # appears at the end; OUT/partial.tgz holds every JSON and log so far (checkpoints deleted).
 # On the lent machine: start it detached (setsid nohup ... &) and keep a call in flight
 # (the machine goes back 30 s after a call returns, and the run with it).
+# Bad input (a missing DATA or RUNS, an OUT that exists or cannot be made) ends with one line
+# on stderr and exit code 2 before anything is written; an existing OUT is left as it was.
 set -u
-DATA=$(realpath "$1"); OUT=$(realpath -m "$2"); RUNS=$(realpath "$3"); COMMIT=${4:-unknown}
+fail() { echo "gpu_runs60.sh: error: $*" >&2; exit 2; }
+[ $# -ge 3 ] || fail "usage: gpu_runs60.sh DATA OUT RUNS [COMMIT]"
+[ -d "$1" ] || fail "DATA $1 is not a folder"
+[ -f "$3" ] && [ -r "$3" ] || fail "RUNS $3 is not a readable file"
+[ ! -e "$2" ] || fail "OUT $2 exists: give a new folder (nothing was written)"
+mkdir -p "$2" 2>/dev/null || fail "OUT $2 cannot be made"
+DATA=$(realpath "$1"); OUT=$(realpath "$2"); RUNS=$(realpath "$3"); COMMIT=${4:-unknown}
 BUDGET_S=${BUDGET_S:-60}; DEVICE=${DEVICE:-cuda}
 source "$(dirname "$0")/gpu_env.sh"
 log() {

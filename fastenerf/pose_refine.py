@@ -313,12 +313,11 @@ class RowAdam(torch.optim.Optimizer):
                 for key in ("gate_m", "gate_sq") if self.gate > 0 else ():
                     if key not in st:
                         st[key] = torch.zeros_like(p)
+                gate = (self.gate, self.gate_beta)
                 if kernels is not None and _fusable(p, st):
                     lr, betas, eps = group["lr"], group["betas"], group["eps"]
-                    gate = (self.gate, self.gate_beta)
                     kernels.row_adam(p, p.grad, st, rows, found_inf, lr, betas, eps, decay, *gate)
                 else:
-                    gate = (self.gate, self.gate_beta)
                     self._step_torch(p, st, group, rows, found_inf, decay, gate)
         return None
 

@@ -447,8 +447,8 @@ def _has_gradient(grad: wp.array2d(dtype=float), g: int) -> bool:
 
 @wp.func
 def _gate_factor(m_hat: float, s_hat: float, c: float, gate: float):
-    """The significance gate's factor in [0, 1]: z = |m̂| / √(ŝ c), the momentum in standard
-    errors of a zero-mean gradient; 0 up to z = gate, 1 from 2 gate, linear between."""
+    """The significance gate's factor in [0, 1]: z = |m̂| / √(ŝ c), the mean gradient in
+    standard errors of a zero-mean one; 0 up to z = gate, 1 from 2 gate, linear between."""
     var = s_hat * c
     if var <= 0.0:
         return 0.0

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -517,3 +519,29 @@ def test_compare_runs_plots_one_panel_per_prefix_and_refuses_a_missing_folder(tm
     for bad in (str(notes), str(notes / "x.png"), str(tmp_path / "a")):  # not a png / no folder
         assert compare_runs.main([bad, items[0]]) == 2
     assert notes.read_text() == "mine"
+
+
+def test_gpu_runs60_bad_input_is_one_line_exit_2_and_leaves_out_alone(tmp_path):
+    """benchmarks/gpu_runs60.sh refuses a missing DATA or RUNS, an existing OUT and an OUT it
+    cannot make, before it runs or writes anything."""
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu_runs60.sh"
+    runs = tmp_path / "runs.txt"
+    runs.write_text("plain scene\n")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.json").write_text("{}")
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    cases = [
+        ([], "usage"),
+        ([str(tmp_path / "no-data"), str(tmp_path / "o1"), str(runs)], "is not a folder"),
+        ([str(tmp_path), str(tmp_path / "o2"), str(tmp_path / "no-runs")], "not a readable file"),
+        ([str(tmp_path), str(out), str(runs)], "exists"),
+        ([str(tmp_path), str(blocker / "o3"), str(runs)], "cannot be made"),
+    ]
+    for args, words in cases:
+        r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True)
+        err = r.stderr.strip()
+        assert r.returncode == 2 and len(err.splitlines()) == 1 and words in err, (args, err)
+    assert sorted(p.name for p in out.iterdir()) == ["keep.json"]
+    assert not any((tmp_path / n).exists() for n in ("o1", "o2"))

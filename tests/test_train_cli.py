@@ -62,6 +62,7 @@ def test_help_lists_every_training_knob_with_its_docstring(capsys):
         (["--neg-ratio", "1.5"], "'neg_ratio' must be in [0, 1], got 1.5"),
         (["--refine-shared"], "'refine_shared' needs refine_poses"),
         (["--refine-gate", "-1"], "'refine_gate' must be in [0, 100], got -1"),
+        (["--refine-gate-beta", "1"], "'refine_gate_beta' must be in [0, 0.9999], got 1"),
         (["--lr-decay-start", "1"], "'lr_decay_start' must be in [0, 0.99], got 1"),
         (["--options", '{"hidden": -1}'], "'network.hidden' must be in [1, 1024], got -1"),
         (
