@@ -135,6 +135,7 @@ def level_row(
         "knobs": {k: train.get(k) for k in KNOBS},
         "rays_per_step": train.get("rays_per_step"),
         "self_calibration": calibration_summary(train, conf.get("self_calibration")),
+        "pose_smoothing": conf.get("pose_smoothing"),  # the motion prior's report, or None
         "points": points,
         "tile": str((run_dir / VIEW_TILE).relative_to(out)) if fe else None,
         "sessions": [_session_line(s) for s in curve.get("sessions", [])],
@@ -312,7 +313,8 @@ def _table(result: dict) -> list[str]:
         head = "| variant | win_min..win_max (views) | neg_ratio | distortion_weight |"
     elif study in POSE_STUDIES:
         what = study.replace("-", " ")
-        head = f"| {what} | measured mean / max (°) | after refinement mean / max (°) |"
+        prior = " after the prior mean (°) |" if _has_prior(rows) else ""
+        head = f"| {what} | measured mean / max (°) |{prior} after refinement mean / max (°) |"
     else:
         head = "| noise | measured added fraction (events) |"
     n_first = head.count("|") - 1
@@ -321,7 +323,7 @@ def _table(result: dict) -> list[str]:
         score += " supplement PSNR | supplement Δ |"
     lines = [head + score, "|---" * n_first + "|---:" * score.count("|") + "|"]
     for r in rows:
-        lines.append(_first_cells(study, r) + _score_cells(r, ref, sup))
+        lines.append(_first_cells(study, r, _has_prior(rows)) + _score_cells(r, ref, sup))
     if study == "ablation":
         w = result["windows"]
         lines += [
@@ -336,7 +338,11 @@ def _table(result: dict) -> list[str]:
     return lines
 
 
-def _first_cells(study: str, r: dict) -> str:
+def _has_prior(rows: list[dict]) -> bool:
+    return any(r.get("pose_smoothing") for r in rows)
+
+
+def _first_cells(study: str, r: dict, prior: bool = False) -> str:
     name = r["label"] + ("" if r["finished"] else " (unfinished)")
     m, k = r["measured"], r["knobs"]
     if study == "ablation":
@@ -345,10 +351,21 @@ def _first_cells(study: str, r: dict) -> str:
             f"{_f(k['distortion_weight'], 'g')} |"
         )
     if study in POSE_STUDIES:
-        return (
-            f"| {name} | {_f(m['mean_deg'], '.4g')} / {_f(m['max_deg'], '.4g')} | {_pose_left(r)} |"
-        )
+        cells = f"| {name} | {_f(m['mean_deg'], '.4g')} / {_f(m['max_deg'], '.4g')} |"
+        if prior:
+            cells += f" {_prior_left(r)} |"
+        return cells + f" {_pose_left(r)} |"
     return f"| {name} | {100 * m['fraction']:.3f} % ({m['added_events']:,}) |"
+
+
+def _prior_left(r: dict) -> str:
+    """The mean rotation error (°) the motion prior (`--smooth-poses`) leaves before training,
+    or "no prior". A level without a perturbation trains on the exact poses, so there the
+    error is the turn the prior gave them."""
+    rep = r.get("pose_smoothing")
+    if not rep:
+        return "no prior"
+    return _f(rep.get("error_after_deg", rep.get("mean_turn_deg")), ".3f")
 
 
 def _pose_left(r: dict) -> str:

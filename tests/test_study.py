@@ -72,9 +72,12 @@ def check_outputs(out, name: str) -> tuple[dict, str]:
     return res, md
 
 
-# The pose studies at 0° and 1°, one step each; the mount study refines its shared row back
-# (the names continue FAST's --set).
-ANGLE_EXTRA = {"pose-error": (), "mount-error": ("refine_poses=true", "refine_shared=true")}
+# The pose studies at 0° and 1°, one step each; the mount study refines its shared row back,
+# after a motion prior that must keep the shared turn (the names continue FAST's --set).
+ANGLE_EXTRA = {
+    "pose-error": (),
+    "mount-error": ("refine_poses=true", "refine_shared=true", "smooth_poses=21", "smooth_order=1"),
+}
 
 
 @pytest.fixture(scope="module")
@@ -120,7 +123,7 @@ def test_pose_studies_apply_the_angle_they_report(angle_studies, name):
     assert "°" in md and f"| {name.replace('-', ' ')} | measured mean / max (°) |" in md
     if name == "pose-error":
         assert "27.43" in md and "18.11" in md and "between 0.1° and 1°" in md
-        assert "| 1° | 1 / 1 | no refinement |" in md
+        assert "| 1° | 1 / 1 | no refinement |" in md and "after the prior" not in md
         return
     # mount-error: one camera-frame axis, refined back with the shared row; no supplement
     assert len(m["axis"]) == 3 and abs(math.hypot(*m["axis"]) - 1.0) < 1e-9
@@ -131,6 +134,12 @@ def test_pose_studies_apply_the_angle_they_report(angle_studies, name):
     assert res["supplement"]["psnr"] == {} and res["supplement"]["break"] is None
     assert "no mount-error study" in md and "Supplement:" not in md
     assert "no refinement" not in md
+    # the prior's column: a turn shared by every pose is no jitter, so the prior keeps it all;
+    # the exact poses of level 0 (a turntable) it leaves as they are
+    assert "| measured mean / max (°) | after the prior mean (°) | after refinement" in md
+    kept = rows[1.0]["pose_smoothing"]["error_after_deg"]
+    assert abs(kept - 1.0) < 1e-3 and f"| 1° | 1 / 1 | {kept:.3f} |" in md
+    assert rows[0.0]["pose_smoothing"]["mean_turn_deg"] < 1e-9 and "| 0° | 0 / 0 | 0.000 |" in md
 
 
 def test_resumed_study_redoes_nothing_and_unfinished_levels_continue(pose_study, tiny_scene):
