@@ -134,6 +134,12 @@ def test_bad_windows_are_refused(window):
             TrainConfig(smooth_poses=window).validate()
 
 
+def test_a_window_longer_than_the_poses_names_one_that_fits():
+    _, c2w = wobbly_timed(60)
+    with pytest.raises(InputError, match=r"longer than the 60 .* 40 % of them: 25\)$"):
+        smooth_poses(c2w, 101, loop=False)
+
+
 def test_a_window_spanning_half_a_turn_is_refused(scene_config):
     """On a 400-pose orbit, a 351-pose window reaches ±157° about a pose: near 180° a log's
     sign is arbitrary and the fit would average opposite turns, so it is one clear error;
