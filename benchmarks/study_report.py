@@ -307,14 +307,15 @@ def markdown(result: dict) -> str:
 
 def _table(result: dict) -> list[str]:
     study, rows = result["study"], result["levels"]
+    prior = _has_prior(rows)  # a column for the motion prior's error where a level ran one
     sup = {float(k): v for k, v in result["supplement"]["psnr"].items()}
     ref = rows[0]["psnr"] if rows else float("nan")
     if study == "ablation":
         head = "| variant | win_min..win_max (views) | neg_ratio | distortion_weight |"
     elif study in POSE_STUDIES:
         what = study.replace("-", " ")
-        prior = " after the prior mean (°) |" if _has_prior(rows) else ""
-        head = f"| {what} | measured mean / max (°) |{prior} after refinement mean / max (°) |"
+        col = " after the prior mean (°) |" if prior else ""
+        head = f"| {what} | measured mean / max (°) |{col} after refinement mean / max (°) |"
     else:
         head = "| noise | measured added fraction (events) |"
     n_first = head.count("|") - 1
@@ -323,7 +324,7 @@ def _table(result: dict) -> list[str]:
         score += " supplement PSNR | supplement Δ |"
     lines = [head + score, "|---" * n_first + "|---:" * score.count("|") + "|"]
     for r in rows:
-        lines.append(_first_cells(study, r, _has_prior(rows)) + _score_cells(r, ref, sup))
+        lines.append(_first_cells(study, r, prior) + _score_cells(r, ref, sup))
     if study == "ablation":
         w = result["windows"]
         lines += [

@@ -45,9 +45,10 @@ def check_window(window: int, n_poses: int, where: str = "smooth_poses") -> None
         )
     if window > n_poses:
         hint = max(MIN_WINDOW, int(0.4 * n_poses) // 2 * 2 + 1)  # the studies' 401 of 1000
+        fits = f"on a turntable the studies use 40 % of them: {hint}"
         raise InputError(
             f"{where}: smooth_poses {window} is longer than the {n_poses} training poses it "
-            f"would smooth (on a turntable the studies use 40 % of them: {hint})"
+            f"would smooth ({fits if hint <= n_poses else f'at least {MIN_WINDOW} are needed'})"
         )
 
 

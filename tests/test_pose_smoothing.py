@@ -138,6 +138,8 @@ def test_a_window_longer_than_the_poses_names_one_that_fits():
     _, c2w = wobbly_timed(60)
     with pytest.raises(InputError, match=r"longer than the 60 .* 40 % of them: 25\)$"):
         smooth_poses(c2w, 101, loop=False)
+    with pytest.raises(InputError, match=r"longer than the 4 .*\(at least 5 are needed\)$"):
+        smooth_poses(c2w[:4], 5, loop=False)  # no window fits: none is suggested
 
 
 def test_a_window_spanning_half_a_turn_is_refused(scene_config):
