@@ -179,35 +179,19 @@ class SceneConfig:
         for k in ("fx", "fy", "cx", "cy", "k1", "k2"):
             v = getattr(self.intrinsics, k)
             _check(math.isfinite(v), where, f"intrinsics.{k}", f"is not finite ({v})")
-        _check(
-            self.intrinsics.fx > 0 and self.intrinsics.fy > 0,
-            where,
-            "intrinsics.fx/fy",
-            "must be positive",
-        )
-        _check(
-            self.pos_threshold > 0 and self.neg_threshold > 0,
-            where,
-            "pos/neg_threshold",
-            "must be positive",
-        )
+        ok = self.intrinsics.fx > 0 and self.intrinsics.fy > 0
+        _check(ok, where, "intrinsics.fx/fy", "must be positive")
+        ok = self.pos_threshold > 0 and self.neg_threshold > 0
+        _check(ok, where, "pos/neg_threshold", "must be positive")
         _check(self.t_end_us > self.t_start_us, where, "t_end_us", "must be after t_start_us")
         _check(self.n_views >= 2, where, "n_views", "must be at least 2")
         from .memory import check_memory, views_bytes  # the window grid holds n_views poses
 
         check_memory(views_bytes(self.n_views), f"{where}: n_views {self.n_views:,}")
-        _check(
-            len(self.aabb) == 6 and all(math.isfinite(a) for a in self.aabb),
-            where,
-            "aabb",
-            "must be 6 finite numbers [xmin, ymin, zmin, xmax, ymax, zmax]",
-        )
-        _check(
-            all(self.aabb[i] < self.aabb[i + 3] for i in range(3)),
-            where,
-            "aabb",
-            "min must be below max on every axis",
-        )
+        ok, why = len(self.aabb) == 6 and all(math.isfinite(a) for a in self.aabb), "6 finite"
+        _check(ok, where, "aabb", f"must be {why} numbers [xmin, ymin, zmin, xmax, ymax, zmax]")
+        ok = all(self.aabb[i] < self.aabb[i + 3] for i in range(3))
+        _check(ok, where, "aabb", "min must be below max on every axis")
         tr = self.trajectory
         _check(
             len(tr.center) == 3 and all(math.isfinite(c) for c in tr.center),
@@ -218,12 +202,8 @@ class SceneConfig:
         if tr.kind == "timed":
             _check(bool(tr.poses_file), where, "trajectory.poses_file", "is required for 'timed'")
         else:
-            _check(
-                tr.radius > 0 and tr.period_us > 0,
-                where,
-                "trajectory.radius/period_us",
-                "must be positive",
-            )
+            ok = tr.radius > 0 and tr.period_us > 0
+            _check(ok, where, "trajectory.radius/period_us", "must be positive")
             # at ±90° the camera looks along the turntable axis: look-at has no "up"
             _check(
                 abs(tr.elevation_deg) < 90,
@@ -394,8 +374,9 @@ class TrainConfig:
     later, it has learnt the wrong poses' blur); then the pose lr decays to refine_lr_final."""
     refine_warmup: float = 0.1
     """Fraction of the pose schedule over which the pose lr ramps up from 0 (0: no ramp)."""
-    refine_windows_per_step: int = field(default=64, metadata={"min": 1, "max": 65536})
-    """While refining poses, at least this many windows per step (each row needs visits)."""
+    refine_windows_per_step: int | None = field(default=None, metadata={"min": 1, "max": 65536})
+    """While refining poses, at least this many windows per step (each row needs visits).
+    Default: 16 with smooth_poses, else 64 (`refine_defaults`)."""
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
     """adam: one Adam over every pose row; row-adam: lazy, a row steps when a batch sees it."""
     refine_beta1: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
@@ -408,8 +389,9 @@ class TrainConfig:
     refine_shared_until: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     """Budget fraction until which every pose takes one shared correction (the rows' summed
     gradient), each its own after (0: per pose throughout); needs the gauge none."""
-    refine_decay: float = field(default=30.0, metadata={"min": 0.0, "max": 1e4})
-    """Decoupled decay towards the given poses: a row a batch sees shrinks by pose lr x this."""
+    refine_decay: float | None = field(default=None, metadata={"min": 0.0, "max": 1e4})
+    """Decoupled decay towards the given poses: a row a batch sees shrinks by pose lr x this.
+    Default: 0 with smooth_poses, else 30 (`refine_defaults`)."""
     refine_gate: float = field(default=1.5, metadata={"min": 0.0, "max": 100.0})
     """Significance gate on the row-adam's pose steps (0: off; adam has none): a component steps
     in full once its mean gradient stands 2 x gate standard errors from zero, none below gate."""
@@ -472,6 +454,13 @@ class TrainConfig:
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
+    def refine_defaults(self) -> tuple[int, float]:
+        """(refine_windows_per_step, refine_decay), a None filled: 16 and 0 after smooth_poses
+        (what the prior leaves is slow along the path, and the decay held it back), else 64 and
+        30 (without the prior, 16 windows leave half of a 1° error; benchmarks/RESULTS.md)."""
+        prior, w, d = self.smooth_poses > 0, self.refine_windows_per_step, self.refine_decay
+        return (w or (16 if prior else 64)), (d if d is not None else (0.0 if prior else 30.0))
+
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:
         """A copy with every `None` replaced by its scene / device / backend default."""
         real = scene.kind == "real"
@@ -503,6 +492,7 @@ class TrainConfig:
             c.rays_per_step = 8192 if str(device).startswith("cuda") else 512
             c.rays_per_step = NGP_CPU_RAYS if cpu_ngp else c.rays_per_step
             c.rays_per_step = max(c.rays_per_step, c.windows_per_step)
+        c.refine_windows_per_step, c.refine_decay = c.refine_defaults()
         if c.refine_poses:
             more = min(c.refine_windows_per_step, c.rays_per_step)
             c.windows_per_step = max(c.windows_per_step, more)

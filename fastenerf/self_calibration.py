@@ -88,6 +88,7 @@ class SelfCalibration:
         ratio: float | None = None,
     ):
         self.cfg, self.field = cfg, field
+        self.decay = cfg.refine_defaults()[1] if cfg.refine_poses else 0.0
         self.poses: PoseRefiner | None = None
         self.thresholds: ThresholdEstimator | None = None
         groups = []
@@ -266,10 +267,9 @@ class SelfCalibration:
             self._seen = self.poses.share_gradient()  # before either optimiser steps them
         if not self._placeholder:  # whose unfused step a CUDA graph could not capture
             self.optimizer.step()
-        decay = self.cfg.refine_decay if self.poses is not None else 0.0
         if self._row_adam_steps():  # the row Adam decays the rows it steps, in its launch
-            self.pose_optimizer.step(self._seen, found_inf=found_inf, decay=decay)
-        elif decay > 0:  # plain Adam, the pose lr still 0, or no pose gradient
+            self.pose_optimizer.step(self._seen, found_inf=found_inf, decay=self.decay)
+        elif self.decay > 0:  # plain Adam, the pose lr still 0, or no pose gradient
             self._decay_poses(found_inf)
         if self.thresholds is not None:
             self.thresholds.project()
@@ -288,12 +288,12 @@ class SelfCalibration:
         optimiser's step; skipped with it (found_inf). Where the row Adam steps the poses it
         does this itself (`RowAdam.step(decay=...)`); this is for the other cases."""
         lr = self.pose_lr_now
-        if lr * self.cfg.refine_decay == 0:
+        if lr * self.decay == 0:
             return  # a factor of exactly 1: nothing changes
         seen = self._seen
         if found_inf is not None:
             seen = seen & found_inf.to(seen.device).eq(0)
-        rate = min(1.0, lr * self.cfg.refine_decay)
+        rate = min(1.0, lr * self.decay)
         self.poses.delta.mul_(1.0 - rate * seen[:, None].to(self.poses.delta.dtype))
 
     # -- reporting ---------------------------------------------------------------------------

@@ -234,6 +234,26 @@ def test_refining_raises_the_windows_per_step(scene_config):
     assert more.windows_per_step == 128
 
 
+def test_the_motion_prior_sets_the_refinement_batch_and_decay(scene_config):
+    """Unset, refine_windows_per_step and refine_decay are 64 and 30 alone and 16 and 0 after
+    smooth_poses, in the resolved config (what a run records) and in SelfCalibration's decay
+    (tests build it unresolved); a value given is kept either way."""
+    from fastenerf.config import train_preset
+
+    sc, kw = scene_config(64, 48), {"rays_per_step": 512, "refine_poses": True}
+    alone = train_preset("fast", "ngp", **kw).resolved(sc)
+    assert (alone.refine_windows_per_step, alone.refine_decay) == (64, 30.0)
+    prior = train_preset("fast", "ngp", smooth_poses=5, **kw).resolved(sc)
+    assert (prior.refine_windows_per_step, prior.refine_decay) == (16, 0.0)
+    assert prior.windows_per_step == 16
+    given = dict(refine_windows_per_step=32, refine_decay=5.0, smooth_poses=5, **kw)
+    kept = train_preset("fast", "ngp", **given).resolved(sc)
+    assert (kept.refine_windows_per_step, kept.refine_decay, kept.windows_per_step) == (32, 5, 32)
+    assert _pose_calibration().decay == 30.0
+    assert _pose_calibration(smooth_poses=5).decay == 0.0
+    assert _pose_calibration(smooth_poses=5, refine_decay=7.0).decay == 7.0
+
+
 def _old_step(cal, found_inf):
     """SelfCalibration.step's pose part as it was: the row Adam's step, then `_decay_poses`."""
     cal.pose_optimizer.step(cal._seen, found_inf=found_inf)
