@@ -459,7 +459,8 @@ class TrainConfig:
         (what the prior leaves is slow along the path, and the decay held it back), else 64 and
         30 (without the prior, 16 windows leave half of a 1° error; benchmarks/RESULTS.md)."""
         prior, w, d = self.smooth_poses > 0, self.refine_windows_per_step, self.refine_decay
-        return (w or (16 if prior else 64)), (d if d is not None else (0.0 if prior else 30.0))
+        w = (16 if prior else 64) if w is None else w
+        return w, (0.0 if prior else 30.0) if d is None else d
 
     def resolved(self, scene: SceneConfig, device: str = "cpu") -> TrainConfig:
         """A copy with every `None` replaced by its scene / device / backend default."""
