@@ -188,8 +188,8 @@ class SceneConfig:
         from .memory import check_memory, views_bytes  # the window grid holds n_views poses
 
         check_memory(views_bytes(self.n_views), f"{where}: n_views {self.n_views:,}")
-        ok, why = len(self.aabb) == 6 and all(math.isfinite(a) for a in self.aabb), "6 finite"
-        _check(ok, where, "aabb", f"must be {why} numbers [xmin, ymin, zmin, xmax, ymax, zmax]")
+        ok = len(self.aabb) == 6 and all(math.isfinite(a) for a in self.aabb)
+        _check(ok, where, "aabb", "must be 6 finite numbers [xmin, ymin, zmin, xmax, ymax, zmax]")
         ok = all(self.aabb[i] < self.aabb[i + 3] for i in range(3))
         _check(ok, where, "aabb", "min must be below max on every axis")
         tr = self.trajectory
