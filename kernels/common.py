@@ -1,5 +1,6 @@
 """Shared Warp plumbing: initialisation, device mapping, zero-copy tensor views, and THE way a
-kernel is launched (`launch`): every op in this package goes through it."""
+kernel is launched (`launch`, or `launch_tiled` for blocks of cooperating threads): every op in
+this package goes through them."""
 
 from __future__ import annotations
 
@@ -122,3 +123,62 @@ def launch(kernel, dim: int, like: torch.Tensor, args: list) -> None:
     if dim <= 0:
         return
     launcher(kernel)(dim, like, [fast_view(a) if isinstance(a, torch.Tensor) else a for a in args])
+
+
+class TiledLauncher:
+    """As `Launcher`, for a kernel run by blocks of `block_dim` cooperating threads
+    (`wp.launch_tiled`: launched over (blocks, block_dim), `wp.tid()` gives (block, lane)).
+
+    On the CPU the blocks run as cooperative fibers of `block_dim` lanes, the GPU's schedule,
+    so a CPU test exercises the same lanes and tile ops. Warp makes that opt-in
+    (`wp.config.enable_cpu_blocks`, otherwise a CPU block has one lane); it is switched on only
+    while this launch is recorded, which fixes the block width of the recorded command and
+    leaves every other kernel's CPU launches as they were.
+    """
+
+    def __init__(self, kernel, block_dim: int):
+        self.kernel, self.block_dim, self._cmds = kernel, block_dim, {}
+
+    def _record(self, blocks: int, device: str, args: list):
+        cpu_blocks = wp.config.enable_cpu_blocks
+        wp.config.enable_cpu_blocks = True
+        try:
+            return wp.launch_tiled(
+                self.kernel,
+                dim=(blocks,),
+                inputs=args,
+                device=device,
+                block_dim=self.block_dim,
+                record_cmd=True,
+            )
+        finally:
+            wp.config.enable_cpu_blocks = cpu_blocks
+
+    def __call__(self, blocks: int, t: torch.Tensor, args: list) -> None:
+        """Launch `blocks` blocks on t's device and current stream with args (Warp values)."""
+        device = device_of(t)
+        cmd = self._cmds.get(device)
+        if cmd is None:
+            cmd = self._cmds[device] = self._record(blocks, device, args)
+        else:
+            for i, a in enumerate(args):
+                cmd.set_param_at_index(i, a)
+            cmd.set_dim((blocks, cmd.block_dim))
+        cmd.launch(fast_stream(t))
+
+
+@functools.cache
+def tiled_launcher(kernel, block_dim: int) -> TiledLauncher:
+    """The process-wide TiledLauncher of a kernel at one block width."""
+    return TiledLauncher(kernel, block_dim)
+
+
+def launch_tiled(kernel, blocks: int, block_dim: int, like: torch.Tensor, args: list) -> None:
+    """Launch `kernel` over `blocks` blocks of `block_dim` threads on `like`'s device and
+    current stream (no host sync, no allocation once recorded; args as for `launch`).
+    blocks 0 launches nothing."""
+    if blocks <= 0:
+        return
+    tiled_launcher(kernel, block_dim)(
+        blocks, like, [fast_view(a) if isinstance(a, torch.Tensor) else a for a in args]
+    )

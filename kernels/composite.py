@@ -20,16 +20,25 @@ every output is linear in the weights, so with the per-sample "effective weight 
 
 and the suffix sum is the ray's total (known from the forward outputs) minus the running prefix:
 no per-sample tape is stored beyond the weights and the per-ray outputs forward writes.
+
+Two schedules of the same maths (`composite(..., layout=)`): "ray", one thread walks a ray (the
+kernels here; the right shape for the CPU), and "block", 32 threads per ray with tile scans over
+chunks of samples (`composite_block.py`; coalesced loads and full occupancy on a GPU). "auto"
+picks "block" on CUDA and "ray" on the CPU. They agree up to float32 rounding (see
+composite_block's docstring for where, and what that means for the early-termination test).
 """
 
 from __future__ import annotations
 
 import functools
+from typing import Literal
 
 import torch
 import warp as wp
 
-from .common import as_float32, fast_view, init, launch
+from .alpha import one_minus_exp_neg, optical_depth
+from .common import as_float32, fast_view, init, launch, launch_tiled
+from .composite_block import BLOCK_DIM, _composite_bwd_block_kernel, _composite_fwd_block
 
 T_MIN = 1e-4
 """Transmittance below which a ray stops (instant-ngp's early termination)."""
@@ -40,32 +49,6 @@ _empty = torch.empty
 # Per-sample outputs start at zero: samples outside every packed slice (the padding of
 # march_rays_fixed's buffers) get weight 0 and gradient 0. One memset, cheap next to the kernels.
 _zeros = torch.zeros
-
-
-@wp.func
-def one_minus_exp_neg(x: float) -> float:
-    """1 - exp(-x) for x >= 0, accurate to a few ulp also for tiny x (an expm1).
-
-    Plain ``1 - exp(-x)`` rounds to 0 below x ~ 6e-8 in float32, so a sample with a tiny
-    step or density would get no weight and no gradient. Kahan's trick:
-    expm1(y) = (u - 1) * y / log(u) with u = exp(y) cancels the rounding error of exp.
-    """
-    if x >= 1.0:
-        return 1.0 - wp.exp(-x)
-    u = wp.exp(-x)
-    if u == 1.0:
-        return x
-    return (1.0 - u) * x / (-wp.log(u))
-
-
-@wp.func
-def optical_depth(sigma: float, t0: float, t1: float) -> float:
-    """sigma * delta with delta clamped at 0; a zero-length step has zero optical depth even
-    for sigma = inf (0 * inf would be NaN)."""
-    delta = t1 - t0
-    if delta > 0.0:
-        return sigma * delta
-    return 0.0
 
 
 @wp.kernel
@@ -218,11 +201,34 @@ def _grad(g: torch.Tensor | None, dummy: torch.Tensor) -> torch.Tensor:
     return dummy if g is None else as_float32(g)
 
 
+Layout = Literal["auto", "ray", "block"]
+LAYOUTS = ("auto", "ray", "block")
+
+
+def resolve_layout(layout: Layout, device: torch.device) -> str:
+    """The kernels `layout` stands for on `device`, "ray" or "block" ("auto": "block" on CUDA,
+    "ray" elsewhere). Raises ValueError for any other name."""
+    if layout not in LAYOUTS:
+        raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
+    if layout == "auto":
+        return "block" if device.type == "cuda" else "ray"
+    return layout
+
+
+def _launch(layout: str, ray_kernel, block_kernel, R: int, like: torch.Tensor, args: list):
+    """One thread per ray, or one block of BLOCK_DIM threads per ray (same arguments)."""
+    if layout == "block":
+        launch_tiled(block_kernel, R, BLOCK_DIM, like, args)
+    else:
+        launch(ray_kernel, R, like, args)
+
+
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, sigmas, rgbs, t_starts, t_ends, packed_info, background):
+    def forward(ctx, sigmas, rgbs, t_starts, t_ends, packed_info, background, layout):
         init()
         ctx.set_materialize_grads(False)
+        ctx.layout = layout
         sigmas, rgbs, t_starts, t_ends = (as_float32(t) for t in (sigmas, rgbs, t_starts, t_ends))
         packed_info = packed_info.contiguous()
         R, S, dev = packed_info.shape[0], sigmas.shape[0], sigmas.device
@@ -232,8 +238,10 @@ class _Composite(torch.autograd.Function):
         depth = _empty(R, dtype=torch.float32, device=dev)
         opacity = _empty(R, dtype=torch.float32, device=dev)
         n_used = _empty(R, dtype=torch.int32, device=dev)
-        launch(
+        _launch(
+            layout,
             _composite_fwd,
+            _composite_fwd_block,
             R,
             sigmas,
             [
@@ -267,8 +275,13 @@ class _Composite(torch.autograd.Function):
         grad_rgbs = _zeros(S, 3, dtype=torch.float32, device=dev)
         flags = tuple(g is not None for g in (g_rgb, g_depth, g_opacity, g_weights))
         if any(flags):
-            launch(
+            # held in a local until the launch: a Warp view keeps no reference to its tensor,
+            # and a gradient that arrives strided (e.g. from .sum()) is copied here
+            g_rgb = _grad(g_rgb, rgb)
+            _launch(
+                ctx.layout,
                 _composite_bwd_kernel(*flags),
+                _composite_bwd_block_kernel(*flags),
                 R,
                 sigmas,
                 [
@@ -284,7 +297,7 @@ class _Composite(torch.autograd.Function):
                     fast_view(rgb, wp.vec3),
                     depth,
                     opacity,
-                    fast_view(_grad(g_rgb, rgb), wp.vec3),
+                    fast_view(g_rgb, wp.vec3),
                     _grad(g_depth, depth),
                     _grad(g_opacity, opacity),
                     _grad(g_weights, weights),
@@ -292,7 +305,7 @@ class _Composite(torch.autograd.Function):
                     fast_view(grad_rgbs, wp.vec3),
                 ],
             )
-        return grad_sigmas, grad_rgbs, None, None, None, None
+        return grad_sigmas, grad_rgbs, None, None, None, None, None
 
 
 def composite(
@@ -303,6 +316,7 @@ def composite(
     packed_info: torch.Tensor,
     ray_indices: torch.Tensor | None = None,
     background: torch.Tensor | None = None,
+    layout: Layout = "auto",
 ) -> dict[str, torch.Tensor]:
     """Composite packed samples front to back; differentiable w.r.t. `sigmas` and `rgbs`.
 
@@ -317,6 +331,9 @@ def composite(
         background: (3,) colour composited behind every ray, or (R, 3) one per ray, or None
             (black, i.e. nothing); best on the rays' device (a CPU tensor is copied over,
             which waits for the GPU). Not differentiated.
+        layout: "ray" (one thread per ray), "block" (32 threads per ray, tile scans over
+            chunks of 32 samples) or "auto" ("block" on CUDA, "ray" on the CPU). Same results
+            up to float32 rounding.
 
     Returns:
         dict with rgb (R, 3), depth (R,) un-normalised sum of w * t_mid in world units,
@@ -326,8 +343,9 @@ def composite(
     _check_packed(sigmas, t_starts, t_ends, packed_info)
     if rgbs.shape != (sigmas.shape[0], 3):
         raise ValueError(f"rgbs must be ({sigmas.shape[0]}, 3), got {tuple(rgbs.shape)}")
+    mode = resolve_layout(layout, sigmas.device)
     rgb, depth, opacity, weights = _Composite.apply(
-        sigmas, rgbs, t_starts, t_ends, packed_info, background
+        sigmas, rgbs, t_starts, t_ends, packed_info, background, mode
     )
     return {"rgb": rgb, "depth": depth, "opacity": opacity, "weights": weights}
 

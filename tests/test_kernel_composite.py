@@ -1,4 +1,8 @@
-"""Compositing kernel vs a float64 plain-PyTorch reference: values, gradients, stiff cases."""
+"""Compositing kernels vs a float64 plain-PyTorch reference: values, gradients, stiff cases.
+
+Every compositing test runs for both layouts (`layout` fixture): "ray" (a thread per ray) and
+"block" (32 threads per ray, tile scans; on the CPU its blocks run as 32 cooperative fibers).
+"""
 
 from __future__ import annotations
 
@@ -10,6 +14,11 @@ import torch
 
 from fastenerf.kernels import composite as comp
 from fastenerf.kernels.composite import T_MIN, composite, distortion_loss
+
+
+@pytest.fixture(params=["ray", "block"])
+def layout(request) -> str:
+    return request.param
 
 
 def _packed(counts: torch.Tensor) -> torch.Tensor:
@@ -78,10 +87,10 @@ def _loss(out, gs):
     return sum((out[k] * gs[k]).sum() for k in gs)
 
 
-def _run_both(sig, rgbs, t_s, t_e, pi, bg, grad_keys):
+def _run_both(sig, rgbs, t_s, t_e, pi, bg, grad_keys, layout="ray"):
     s32 = sig.clone().requires_grad_()
     c32 = rgbs.clone().requires_grad_()
-    out = composite(s32, c32, t_s, t_e, pi, _ray_of(pi).int(), background=bg)
+    out = composite(s32, c32, t_s, t_e, pi, _ray_of(pi).int(), background=bg, layout=layout)
     s64 = sig.double().requires_grad_()
     c64 = rgbs.double().requires_grad_()
     ref, _ = ref_composite(
@@ -105,22 +114,23 @@ def _run_both(sig, rgbs, t_s, t_e, pi, bg, grad_keys):
         (True, ("weights",)),
     ],
 )
-def test_values_and_gradients_match_float64(with_bg, grad_keys):
-    sig, rgbs, t_s, t_e, pi = _random_case()
+def test_values_and_gradients_match_float64(with_bg, grad_keys, layout):
+    # rays of up to 100 samples: more than one and two chunks of the block layout
+    sig, rgbs, t_s, t_e, pi = _random_case(max_n=100)
     bg = torch.rand(pi.shape[0], 3) if with_bg == "per_ray" else torch.rand(3) if with_bg else None
-    out, ref, (gs, gc), (rs, rc) = _run_both(sig, rgbs, t_s, t_e, pi, bg, grad_keys)
+    out, ref, (gs, gc), (rs, rc) = _run_both(sig, rgbs, t_s, t_e, pi, bg, grad_keys, layout)
     for k in ("rgb", "depth", "opacity", "weights"):
         torch.testing.assert_close(out[k].double(), ref[k].detach(), rtol=1e-5, atol=2e-6)
-    # sigma gradients carry delta * (sum of up to ~40 terms): scale-aware tolerance
+    # sigma gradients carry delta * (sum of up to ~100 terms): scale-aware tolerance
     torch.testing.assert_close(gs.double(), rs, rtol=1e-4, atol=1e-5 * float(rs.abs().max()))
     torch.testing.assert_close(gc.double(), rc, rtol=1e-5, atol=1e-6)
 
 
-def test_finite_difference_of_sigma_gradient():
+def test_finite_difference_of_sigma_gradient(layout):
     """The analytic gradient agrees with central differences of the float64 reference."""
-    sig, rgbs, t_s, t_e, pi = _random_case(R=6, max_n=12)
+    sig, rgbs, t_s, t_e, pi = _random_case(R=6, max_n=40)
     s = sig.clone().requires_grad_()
-    out = composite(s, rgbs, t_s, t_e, pi)
+    out = composite(s, rgbs, t_s, t_e, pi, layout=layout)
     g = torch.randn(pi.shape[0], 3)
     (out["rgb"] * g).sum().backward()
     s64 = sig.double()
@@ -136,7 +146,7 @@ def test_finite_difference_of_sigma_gradient():
         assert abs(float(s.grad[i]) - fd) <= 1e-4 * max(1.0, abs(fd))
 
 
-def test_early_stop_is_consistent():
+def test_early_stop_is_consistent(layout):
     # a dense wall early on each ray: transmittance collapses after a few samples
     R, n = 16, 50
     pi = _packed(torch.full((R,), n))
@@ -149,7 +159,7 @@ def test_early_stop_is_consistent():
     rgbs = torch.rand(S, 3)
     s = sig.clone().requires_grad_()
     c = rgbs.clone().requires_grad_()
-    out = composite(s, c, t_s, t_e, pi)
+    out = composite(s, c, t_s, t_e, pi, layout=layout)
     (out["rgb"].sum() + out["depth"].sum() + out["weights"].sum()).backward()
     _, T = ref_composite(sig.double(), rgbs.double(), t_s.double(), t_e.double(), pi)
     stopped = T < T_MIN
@@ -161,13 +171,13 @@ def test_early_stop_is_consistent():
     keep = ~stopped
     counts = keep.view(R, n).sum(1)
     pi2 = _packed(counts)
-    out2 = composite(sig[keep], rgbs[keep], t_s[keep], t_e[keep], pi2)
+    out2 = composite(sig[keep], rgbs[keep], t_s[keep], t_e[keep], pi2, layout=layout)
     for k in ("rgb", "depth", "opacity"):
         torch.testing.assert_close(out2[k], out[k].detach())
 
 
 @pytest.mark.parametrize("delta", [1e-12, 1e-7, 1e-3, 0.5])
-def test_stiff_sigma_and_tiny_steps(delta):
+def test_stiff_sigma_and_tiny_steps(delta, layout):
     sigmas = torch.tensor([0.0, 1e-3, 1.0, 10.0, 1e3, 1e5, 1e6, 3e38, float("inf")])
     n = sigmas.numel()
     # one ray per sigma value (each preceded by a mild sample) and one ray with all of them
@@ -181,7 +191,7 @@ def test_stiff_sigma_and_tiny_steps(delta):
     rgbs = torch.rand(S, 3)
     bg = torch.tensor([0.2, 0.5, 0.8])
     out, ref, (gs, gc), (rs, rc) = _run_both(
-        sig, rgbs, t_s, t_e, pi, bg, ("rgb", "depth", "opacity", "weights")
+        sig, rgbs, t_s, t_e, pi, bg, ("rgb", "depth", "opacity", "weights"), layout
     )
     for k, v in out.items():
         assert torch.isfinite(v).all(), k
@@ -196,47 +206,47 @@ def test_stiff_sigma_and_tiny_steps(delta):
     torch.testing.assert_close(gs.double()[finite], rs[finite], rtol=1e-4, atol=1e-5)
 
 
-def test_inf_sigma_on_zero_length_step_is_not_nan():
+def test_inf_sigma_on_zero_length_step_is_not_nan(layout):
     sig = torch.tensor([float("inf"), 1.0, float("inf")], requires_grad=True)
     t_s = torch.tensor([0.0, 0.0, 0.5])
     t_e = torch.tensor([0.0, 0.5, 0.5])  # zero, positive, zero length
     pi = _packed(torch.tensor([3]))
-    out = composite(sig, torch.rand(3, 3), t_s, t_e, pi)
+    out = composite(sig, torch.rand(3, 3), t_s, t_e, pi, layout=layout)
     (out["rgb"].sum() + out["opacity"].sum()).backward()
     assert torch.isfinite(out["weights"]).all() and torch.isfinite(out["rgb"]).all()
     assert out["weights"][0] == 0 and out["weights"][2] == 0
     assert torch.isfinite(sig.grad).all()
 
 
-def test_empty_rays_show_background():
+def test_empty_rays_show_background(layout):
     bg = torch.tensor([0.1, 0.2, 0.3])
     pi = _packed(torch.tensor([0, 0, 0]))
     e = torch.zeros(0)
     s = torch.zeros(0, requires_grad=True)
     c = torch.zeros(0, 3, requires_grad=True)
-    out = composite(s, c, e, e, pi, background=bg)
+    out = composite(s, c, e, e, pi, background=bg, layout=layout)
     torch.testing.assert_close(out["rgb"], bg.expand(3, 3))
     assert (out["opacity"] == 0).all() and (out["depth"] == 0).all()
     out["rgb"].sum().backward()
     assert s.grad.shape == (0,)
     # no rays at all
-    out = composite(s, c, e, e, _packed(torch.zeros(0)), background=bg)
+    out = composite(s, c, e, e, _packed(torch.zeros(0)), background=bg, layout=layout)
     assert out["rgb"].shape == (0, 3)
 
 
-def test_every_output_element_is_written(monkeypatch):
+def test_every_output_element_is_written(monkeypatch, layout):
     def poisoned(*shape, dtype=torch.float32, device=None):
         t = torch.empty(*shape, dtype=dtype, device=device)
         return t.fill_(float("nan") if dtype.is_floating_point else -(2**30))
 
     sig, rgbs, t_s, t_e, pi = _random_case(R=32)
     sig[: sig.numel() // 2] *= 1000  # many stopped samples
-    clean = _run_both(sig, rgbs, t_s, t_e, pi, None, ("rgb", "weights"))
+    clean = _run_both(sig, rgbs, t_s, t_e, pi, None, ("rgb", "weights"), layout)
     monkeypatch.setattr(comp, "_empty", poisoned)
     torch.manual_seed(0)
     s = sig.clone().requires_grad_()
     c = rgbs.clone().requires_grad_()
-    out = composite(s, c, t_s, t_e, pi)
+    out = composite(s, c, t_s, t_e, pi, layout=layout)
     (out["rgb"].sum() + out["weights"].sum()).backward()
     for k, v in out.items():
         assert torch.isfinite(v).all(), k
@@ -285,6 +295,10 @@ def test_render_benchmarks_run_at_tiny_size():
     r = bench_composite("cpu", n_rays=64, mean_samples=8, repeats=1)
     assert r["n_samples"] > 0 and r["warp_fwdbwd_ms"] > 0 and r["torch_fwdbwd_ms"] > 0
     assert r["max_abs_err_rgb"] < 1e-5 and r["max_rel_err_grad_sigma"] < 1e-4
+    assert r["warp_layout"] == "ray"  # what "auto" picks on the CPU
+    for L in ("ray", "block"):
+        assert r[f"{L}_fwd_ms"] > 0 and r[f"{L}_fwdbwd_ms"] > 0 and r[f"speedup_{L}_fwdbwd"] > 0
+        assert r[f"{L}_max_abs_err_rgb"] < 1e-5 and r[f"{L}_max_rel_err_grad_sigma"] < 1e-4
     r = bench_march_composite("cpu", n_rays=64, resolution=16, repeats=1)
     assert r["n_samples"] > 0 and r["warp_march_ms"] > 0 and r["torch_march_ms"] > 0
     assert r["count_mismatch_fraction"] < 0.01 and r["max_abs_err_rgb"] < 1e-2
