@@ -35,14 +35,27 @@ ROWS = [
     ),
     ("SH deg 4 fwd+bwd", "sh", "warp_fwdbwd_ms", "torch_fwdbwd_ms", "fwdbwd_GBps", "max_abs_err"),
     ("event window query", "events", "warp_ms", "torch_ms", None, "max_abs_err"),
-    ("composite fwd", "composite", "warp_fwd_ms", "torch_fwd_ms", "fwd_GBps", "max_abs_err_rgb"),
-    (
-        "composite fwd+bwd",
-        "composite",
-        "warp_fwdbwd_ms",
-        "torch_fwdbwd_ms",
-        "fwdbwd_GBps",
-        "max_abs_err_grad_rgb",
+    *(
+        row
+        for L in ("ray", "block")  # composite's two layouts: a thread / 32 threads per ray
+        for row in (
+            (
+                f"composite fwd, {L} layout",
+                "composite",
+                f"{L}_fwd_ms",
+                "torch_fwd_ms",
+                f"{L}_fwd_GBps",
+                f"{L}_max_abs_err_rgb",
+            ),
+            (
+                f"composite fwd+bwd, {L} layout",
+                "composite",
+                f"{L}_fwdbwd_ms",
+                "torch_fwdbwd_ms",
+                f"{L}_fwdbwd_GBps",
+                f"{L}_max_abs_err_grad_rgb",
+            ),
+        )
     ),
     (
         "march",

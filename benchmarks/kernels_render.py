@@ -5,6 +5,9 @@ errors against a float64 reference, a minimal-bytes estimate, the achieved GB/s 
 measured copy bandwidth (DESIGN §8). They also run on CPU at tiny sizes (a smoke test does).
 ``python -m benchmarks.kernels_render --device cuda`` prints the results as JSON.
 
+Compositing is timed in both Warp layouts (`composite(..., layout="ray" | "block")`: a thread
+per ray, or 32 threads per ray with tile scans), each with its speed-up over PyTorch.
+
 Plain-PyTorch baselines:
   - compositing: packed samples scattered into a dense (rays x max samples) array, exclusive
     transmittance with cumprod, early-stop mask, segment sums with index_add; autograd backward;
@@ -20,13 +23,14 @@ call makes no host sync (torch's sync debug mode) and that its samples are march
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 
 import torch
 
 from benchmarks.timing import copy_bandwidth_gbs, time_ms
-from fastenerf.kernels.composite import T_MIN, composite
+from fastenerf.kernels.composite import T_MIN, composite, resolve_layout
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays
 from fastenerf.kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
@@ -118,12 +122,20 @@ def _packed_case(n_rays, mean_samples, device, seed=0):
 
 
 def bench_composite(device="cuda", n_rays=2**16, mean_samples=64, repeats=20) -> dict:
-    """Compositing forward / forward+backward: Warp kernel vs plain PyTorch, same device."""
+    """Compositing forward / forward+backward: both Warp layouts ("ray": a thread per ray,
+    "block": 32 threads per ray) side by side against plain PyTorch, same device.
+
+    Per layout L: `L_fwd_ms`, `L_fwdbwd_ms`, `speedup_L_fwd`, `speedup_L_fwdbwd` (PyTorch time
+    over Warp time), `L_fwd_GBps`, `L_fwdbwd_GBps` and `L_max_*` errors vs float64. The
+    unprefixed `warp_*`, `speedup_*`, `*_GBps` and `max_*` keys are those of `warp_layout`,
+    the one `layout="auto"` picks on this device (what training runs). On CUDA also
+    `L_host_sync` and `L_graph_matches` (see `_composite_cuda_checks`)."""
     sig, rgbs, t_s, t_e, packed = _packed_case(n_rays, mean_samples, device)
     S = sig.shape[0]
     bg = torch.tensor([0.3, 0.5, 0.7], device=device)
     g_rgb = torch.randn(n_rays, 3, device=device)
-    r = {"device": str(device), "n_rays": n_rays, "n_samples": S}
+    auto = resolve_layout("auto", torch.device(device))
+    r = {"device": str(device), "n_rays": n_rays, "n_samples": S, "warp_layout": auto}
 
     def run(fn, backward):
         s = sig.clone().requires_grad_(backward)
@@ -133,12 +145,12 @@ def bench_composite(device="cuda", n_rays=2**16, mean_samples=64, repeats=20) ->
             torch.autograd.grad((out["rgb"] * g_rgb).sum() + out["depth"].sum(), (s, c))
         return out
 
-    for name, fn in (("warp", composite), ("torch", torch_composite)):
+    fns = {L: functools.partial(composite, layout=L) for L in ("ray", "block")}
+    fns["torch"] = torch_composite
+    for name, fn in fns.items():
         with torch.no_grad():
             r[f"{name}_fwd_ms"] = _time_ms(lambda fn=fn: run(fn, False), device, repeats)
         r[f"{name}_fwdbwd_ms"] = _time_ms(lambda fn=fn: run(fn, True), device, repeats)
-    r["speedup_fwd"] = r["torch_fwd_ms"] / r["warp_fwd_ms"]
-    r["speedup_fwdbwd"] = r["torch_fwdbwd_ms"] / r["warp_fwdbwd_ms"]
 
     # errors vs float64 (values and sigma / rgb gradients)
     s64, c64 = sig.double().requires_grad_(), rgbs.double().requires_grad_()
@@ -146,22 +158,78 @@ def bench_composite(device="cuda", n_rays=2**16, mean_samples=64, repeats=20) ->
     gs64, gc64 = torch.autograd.grad(
         (ref["rgb"] * g_rgb.double()).sum() + ref["depth"].sum(), (s64, c64)
     )
-    s32, c32 = sig.clone().requires_grad_(), rgbs.clone().requires_grad_()
-    out = composite(s32, c32, t_s, t_e, packed, background=bg)
-    gs, gc = torch.autograd.grad((out["rgb"] * g_rgb).sum() + out["depth"].sum(), (s32, c32))
-    r["max_abs_err_rgb"] = (out["rgb"].double() - ref["rgb"]).abs().max().item()
-    r["max_abs_err_depth"] = (out["depth"].double() - ref["depth"]).abs().max().item()
-    r["max_rel_err_grad_sigma"] = ((gs.double() - gs64).abs().max() / gs64.abs().max()).item()
-    r["max_abs_err_grad_rgb"] = (gc.double() - gc64).abs().max().item()
-    tout = torch_composite(sig, rgbs, t_s, t_e, packed, bg)
-    r["torch_fp32_max_abs_err_rgb"] = (tout["rgb"].double() - ref["rgb"]).abs().max().item()
-
     # minimal bytes: per sample sigma, t0, t1, rgb in, weight out (fwd); grads out (bwd)
     fwd = 28 * S + 32 * n_rays
     bwd = 40 * S + 52 * n_rays
-    r["fwd_GBps"] = fwd / r["warp_fwd_ms"] * 1e-6
-    r["fwdbwd_GBps"] = (fwd + bwd) / r["warp_fwdbwd_ms"] * 1e-6
+    for L in ("ray", "block"):
+        s32, c32 = sig.clone().requires_grad_(), rgbs.clone().requires_grad_()
+        out = composite(s32, c32, t_s, t_e, packed, background=bg, layout=L)
+        gs, gc = torch.autograd.grad((out["rgb"] * g_rgb).sum() + out["depth"].sum(), (s32, c32))
+        r[f"{L}_max_abs_err_rgb"] = (out["rgb"].double() - ref["rgb"]).abs().max().item()
+        r[f"{L}_max_abs_err_depth"] = (out["depth"].double() - ref["depth"]).abs().max().item()
+        rel = (gs.double() - gs64).abs().max() / gs64.abs().max()
+        r[f"{L}_max_rel_err_grad_sigma"] = rel.item()
+        r[f"{L}_max_abs_err_grad_rgb"] = (gc.double() - gc64).abs().max().item()
+        for m in ("fwd", "fwdbwd"):
+            r[f"speedup_{L}_{m}"] = r[f"torch_{m}_ms"] / r[f"{L}_{m}_ms"]
+        r[f"{L}_fwd_GBps"] = fwd / r[f"{L}_fwd_ms"] * 1e-6
+        r[f"{L}_fwdbwd_GBps"] = (fwd + bwd) / r[f"{L}_fwdbwd_ms"] * 1e-6
+    tout = torch_composite(sig, rgbs, t_s, t_e, packed, bg)
+    r["torch_fp32_max_abs_err_rgb"] = (tout["rgb"].double() - ref["rgb"]).abs().max().item()
+    for k in ("fwd_ms", "fwdbwd_ms"):
+        r[f"warp_{k}"] = r[f"{auto}_{k}"]
+    for k in ("speedup_fwd", "speedup_fwdbwd"):
+        r[k] = r[k.replace("speedup_", f"speedup_{auto}_")]
+    for k in ("fwd_GBps", "fwdbwd_GBps"):
+        r[k] = r[f"{auto}_{k}"]
+    for k in ("rgb", "depth", "grad_rgb"):
+        r[f"max_abs_err_{k}"] = r[f"{auto}_max_abs_err_{k}"]
+    r["max_rel_err_grad_sigma"] = r[f"{auto}_max_rel_err_grad_sigma"]
     r["copy_GBps"] = copy_bandwidth_gbs(device)
+    if str(device).startswith("cuda"):
+        for L in ("ray", "block"):
+            r.update(_composite_cuda_checks(L, sig, rgbs, t_s, t_e, packed, bg, g_rgb))
+    return r
+
+
+def _composite_cuda_checks(layout, sig, rgbs, t_s, t_e, packed, bg, g_rgb) -> dict:
+    """CUDA only: `{layout}_host_sync` ("none", or torch's error for a forward+backward run in
+    sync debug mode) and `{layout}_graph_matches` (a forward+backward captured into a CUDA
+    graph, as training captures it, replays to the eager result bit for bit), or
+    `{layout}_graph_error`."""
+    s, c = sig.clone().requires_grad_(), rgbs.clone().requires_grad_()
+
+    def step():
+        out = composite(s, c, t_s, t_e, packed, background=bg, layout=layout)
+        gs, gc = torch.autograd.grad((out["rgb"] * g_rgb).sum() + out["depth"].sum(), (s, c))
+        return out["rgb"].detach(), gs, gc
+
+    r = {}
+    eager = step()
+    try:
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")  # raises on any host sync inside the call
+        step()
+        r[f"{layout}_host_sync"] = "none"
+    except RuntimeError as e:
+        r[f"{layout}_host_sync"] = str(e).splitlines()[0]
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+    try:
+        side = torch.cuda.Stream()
+        side.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(side):
+            step()  # warm-up on a side stream before capture, as torch asks
+        torch.cuda.current_stream().wait_stream(side)
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph):
+            captured = step()
+        graph.replay()
+        torch.cuda.synchronize()
+        same = all(torch.equal(a, b) for a, b in zip(captured, eager, strict=True))
+        r[f"{layout}_graph_matches"] = same
+    except Exception as e:  # report, do not hide the timings
+        r[f"{layout}_graph_error"] = f"{type(e).__name__}: {e}".splitlines()[0]
     return r
 
 
@@ -392,16 +460,21 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--n-rays", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--mean-samples", type=int, default=64, help="composite: samples per ray")
+    ap.add_argument(
+        "--only", choices=("composite", "march_composite"), help="run one benchmark, not both"
+    )
     ap.add_argument("--dump", help="also save kernel_outputs() here (compare_outputs on CPU)")
     a = ap.parse_args(argv)
     cuda = a.device.startswith("cuda")
     n = a.n_rays or (2**16 if cuda else 2**10)
-    res = {
-        "composite": bench_composite(a.device, n, repeats=a.repeats),
-        "march_composite": bench_march_composite(
+    res = {}
+    if a.only in (None, "composite"):
+        res["composite"] = bench_composite(a.device, n, a.mean_samples, repeats=a.repeats)
+    if a.only in (None, "march_composite"):
+        res["march_composite"] = bench_march_composite(
             a.device, n, resolution=128 if cuda else 64, repeats=a.repeats
-        ),
-    }
+        )
     if a.dump:
         torch.save(kernel_outputs(a.device), a.dump)
     print(json.dumps(res, indent=1, default=lambda x: float(x) if math.isfinite(x) else str(x)))
