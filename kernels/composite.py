@@ -24,7 +24,7 @@ no per-sample tape is stored beyond the weights and the per-ray outputs forward 
 Two schedules of the same maths (`composite(..., layout=)`): "ray", one thread walks a ray (the
 kernels here; the right shape for the CPU), and "block", 32 threads per ray with tile scans over
 chunks of samples (`composite_block.py`; coalesced loads and full occupancy on a GPU). "auto"
-picks "block" on CUDA and "ray" on the CPU. They agree up to float32 rounding (see
+picks `CUDA_AUTO` on CUDA and "ray" on the CPU. They agree up to float32 rounding (see
 composite_block's docstring for where, and what that means for the early-termination test).
 """
 
@@ -205,13 +205,18 @@ Layout = Literal["auto", "ray", "block"]
 LAYOUTS = ("auto", "ray", "block")
 
 
+CUDA_AUTO = "ray"
+"""What "auto" takes on CUDA: "block" only once a GPU run has measured it faster and equal to
+"ray" (benchmarks/RESULTS.md); the CPU always takes "ray" (its blocks are emulated)."""
+
+
 def resolve_layout(layout: Layout, device: torch.device) -> str:
-    """The kernels `layout` stands for on `device`, "ray" or "block" ("auto": "block" on CUDA,
-    "ray" elsewhere). Raises ValueError for any other name."""
+    """The kernels `layout` stands for on `device`, "ray" or "block" ("auto": `CUDA_AUTO` on
+    CUDA, "ray" elsewhere). Raises ValueError for any other name."""
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
     if layout == "auto":
-        return "block" if device.type == "cuda" else "ray"
+        return CUDA_AUTO if device.type == "cuda" else "ray"
     return layout
 
 
@@ -332,7 +337,7 @@ def composite(
             (black, i.e. nothing); best on the rays' device (a CPU tensor is copied over,
             which waits for the GPU). Not differentiated.
         layout: "ray" (one thread per ray), "block" (32 threads per ray, tile scans over
-            chunks of 32 samples) or "auto" ("block" on CUDA, "ray" on the CPU). Same results
+            chunks of 32 samples) or "auto" (`CUDA_AUTO` on CUDA, "ray" on the CPU). Same results
             up to float32 rounding.
 
     Returns:
