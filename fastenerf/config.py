@@ -389,6 +389,9 @@ class TrainConfig:
     refine_shared_until: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     """Budget fraction until which every pose takes one shared correction (the rows' summed
     gradient), each its own after (0: per pose throughout); needs the gauge none."""
+    refine_knots: int = field(default=0, metadata={"min": 0, "max": 1 << 20})
+    """Learn the corrections at this many knots spread along the pose grid, each grid pose's
+    interpolated between its two (0: one per grid pose): for an error smooth along the path."""
     refine_decay: float | None = field(default=None, metadata={"min": 0.0, "max": 1e4})
     """Decoupled decay towards the given poses: a row a batch sees shrinks by pose lr x this.
     Default: 0 with smooth_poses, else 30 (`refine_defaults`)."""
@@ -452,6 +455,9 @@ class TrainConfig:
         _check(self.refine_shared_until == 0 or ok, where, "refine_shared_until", why)
         ok = self.refine_poses or not self.refine_shared
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
+        k, shared = self.refine_knots, self.refine_shared or self.refine_shared_until > 0
+        ok = k == 0 or (k >= 2 and not shared)
+        _check(ok, where, "refine_knots", f"must be 0 or >= 2 and without refine_shared, got {k}")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
     def refine_defaults(self) -> tuple[int, float]:

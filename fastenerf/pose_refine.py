@@ -27,6 +27,13 @@ one parameter (broadcast to the G rows; its gradient sums theirs). Every ray's p
 is 0 (`rays_and_rows` reports one row seen); the grid rows still give each ray its pose. It
 has no gauge: the same turn in every camera's own frame is no rigid motion of the world (a
 mean gauge would remove all of it), so `shared` needs gauge "none".
+
+`knots=K` learns K rows spread evenly along the grid instead of one per grid pose; a grid
+row's correction is the linear interpolation of its two knots (`knot_matrix`, periodic on a
+loop), δ = B · knots. An error that is smooth along the path (what a motion prior leaves of
+per-pose jitter, a slow drift) is then learnt from the pooled gradients of the ~G/K rows
+about each knot, and a batch's few windows reach a knot every few steps instead of a row
+every G/windows steps. The lazy Adam steps the knots a seen row interpolates from.
 """
 
 from __future__ import annotations
@@ -52,6 +59,25 @@ def _pose_rays():
     return pose_rays
 
 
+def knot_matrix(rows: int, knots: int, loop: bool) -> torch.Tensor:
+    """(rows, knots) float32 linear interpolation weights of `knots` values spread evenly over
+    `rows` grid rows: each row has weights on two neighbouring knots summing to 1, and a row on
+    a knot has weight 1 there. loop: the last row is the first's twin (the path closes), so
+    knot K-1 interpolates towards knot 0 and the last row equals the first; else the first
+    and last rows sit on the first and last knots."""
+    if knots < 2 or knots > rows - int(loop):
+        raise ValueError(f"knot_matrix: {knots} knots need 2 to {rows - int(loop)} for {rows} rows")
+    span = (rows - 1) / (knots if loop else knots - 1)  # rows per knot interval
+    x = torch.arange(rows, dtype=torch.float64) / span
+    j = x.floor().clamp(max=knots - 1 if loop else knots - 2)
+    f = (x - j).float()
+    j = j.long()
+    B = torch.zeros(rows, knots)
+    B[torch.arange(rows), j % knots] += 1.0 - f
+    B[torch.arange(rows), (j + 1) % knots] += f
+    return B
+
+
 class PoseRefiner(nn.Module):
     """Corrected camera-to-world poses and the rays through them.
 
@@ -60,9 +86,11 @@ class PoseRefiner(nn.Module):
     exact poses (a study's unperturbed rig), only for the error stats; translation: False
     learns rotations only (the centres stay); fused: `rays` runs the Warp kernels
     (`kernels.pose_rays`) where Warp loads and delta is float32, else the torch reference.
-    shared: one row for every pose (module docstring; needs gauge "none").
+    shared: one row for every pose (module docstring; needs gauge "none"). knots: K >= 2
+    learnt rows interpolated along the grid (module docstring; 0: one per row); loop: whether
+    the grid's last row is its first's twin (None: an unused last row equal to the first).
     Parameter `delta`: (G, 6) camera-frame [ω (rad), u (world units)] before the gauge fix;
-    (1, 6) when shared.
+    (1, 6) when shared, (K, 6) with knots.
     """
 
     def __init__(
@@ -74,6 +102,8 @@ class PoseRefiner(nn.Module):
         translation: bool = True,
         fused: bool = True,
         shared: bool = False,
+        knots: int = 0,
+        loop: bool | None = None,
     ):
         super().__init__()
         self.fused, self.shared = fused, shared
@@ -83,6 +113,8 @@ class PoseRefiner(nn.Module):
             raise ValueError(f"PoseRefiner: a shared correction has no gauge, got {gauge!r}")
         if not bool(used.any()):
             raise ValueError("PoseRefiner: no grid row is used")
+        if shared and knots:
+            raise ValueError("PoseRefiner: a shared correction has no knots")
         self.gauge = gauge
         self.register_buffer("base", grid_c2w.detach().float().clone())
         mask = used.to(self.base.device, torch.float32)
@@ -94,14 +126,26 @@ class PoseRefiner(nn.Module):
         cols = torch.tensor([1.0] * 3 + [float(translation)] * 3, device=mask.device)
         self.register_buffer("mask", mask[:, None] * cols)
         self.register_buffer("true_c2w", None if true_c2w is None else true_c2w.float().clone())
-        rows = 1 if shared else len(grid_c2w)
+        if loop is None:
+            twin = torch.allclose(grid_c2w[0].float(), grid_c2w[-1].float(), atol=1e-5)
+            loop = twin and not bool(used[-1])
+        B = knot_matrix(len(grid_c2w), knots, loop).to(mask.device) if knots else None
+        self.register_buffer("interp", B)
+        rows = 1 if shared else knots or len(grid_c2w)
         self.delta = nn.Parameter(torch.zeros(rows, 6, device=self.base.device))
+
+    def row_delta(self) -> torch.Tensor:
+        """Every grid row's camera-frame correction before the gauge fix, (G, 6): `delta`
+        itself, the shared row broadcast, or the knots interpolated."""
+        if self.interp is not None:
+            return self.interp @ self.delta
+        return self.delta.expand(len(self.base), 6)
 
     def corrections(self) -> torch.Tensor:
         """The gauge-fixed world-frame corrections δ = [w, v], (G, 6): zero on unused rows (and
         on a fixed first row); shared: the one row in every camera's frame."""
         R = self.base[:, :3, :3]
-        d = torch.einsum("gij,gkj->gki", R, (self.delta * self.mask).view(-1, 2, 3))
+        d = torch.einsum("gij,gkj->gki", R, (self.row_delta() * self.mask).view(-1, 2, 3))
         d = d.reshape(-1, 6)
         if self.gauge == "mean":
             rows = self.mask[:, :1]
@@ -158,9 +202,8 @@ class PoseRefiner(nn.Module):
                 k = pose_idx.shape[0] // max(dirs.shape[0], 1)
                 rays_d = generate_rays(dirs.float().repeat(k, 1), self.base[pose_idx])[1]
             centre = self.gauge == "mean"
-            delta = self.delta.expand(len(self.base), 6)  # shared: one row, every pose's
             o, d, seen = kernels.pose_rays(
-                delta, self.base, self.mask, dirs, pose_idx, rays_d, centre
+                self.row_delta(), self.base, self.mask, dirs, pose_idx, rays_d, centre
             )
             return o, d, self._param_rows(seen)
         d = self.corrections()
@@ -184,7 +227,10 @@ class PoseRefiner(nn.Module):
         return self.used
 
     def _param_rows(self, seen: torch.Tensor) -> torch.Tensor:
-        """The grid rows seen (G,) as rows of `delta`: shared, (1,) whether any was."""
+        """The grid rows seen (G,) as rows of `delta`: shared, (1,) whether any was; with
+        knots, (K,) the knots a seen row takes a weight from (on the device, no host read)."""
+        if self.interp is not None:
+            return (seen.to(self.interp.dtype) @ self.interp) > 0
         return seen.any(0, keepdim=True) if self.shared else seen
 
     @torch.no_grad()

@@ -41,6 +41,13 @@ def used_rows(sampler: RaySampler) -> torch.Tensor:
     return used
 
 
+def check_knots(knots: int, rows: int) -> None:
+    """One-line InputError unless refine_knots fits the grid: at most one per grid pose."""
+    if knots > rows - 1:
+        why = f"{knots} knots for a grid of {rows} poses: at most {rows - 1} (0: one per pose)"
+        raise InputError(f"refine_knots: {why}")
+
+
 def pose_lr(cfg: TrainConfig, progress: float) -> float:
     """The pose corrections' lr at training `progress` in [0, 1]: 0 before refine_start, then
     an exponential decay from refine_lr to refine_lr_final over the rest of the budget, ramped
@@ -95,6 +102,7 @@ class SelfCalibration:
         self.pose_optimizer: RowAdam | None = None  # refine_optimizer "row-adam"
         self._seen: torch.Tensor | None = None  # (G,) bool rows the last batch saw
         if cfg.refine_poses:
+            check_knots(cfg.refine_knots, len(sampler.grid_c2w))
             self.poses = PoseRefiner(
                 sampler.grid_c2w,
                 used_rows(sampler),
@@ -102,6 +110,7 @@ class SelfCalibration:
                 true_c2w,
                 translation=cfg.refine_translation,
                 shared=cfg.refine_shared,
+                knots=cfg.refine_knots,
             )
             betas = (cfg.refine_beta1, ADAM_BETAS[1])
             group = {"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"}
@@ -330,6 +339,7 @@ class SelfCalibration:
             out["poses"] = {
                 "rows": 1 if self.poses.shared else int(self.poses.used.sum()),
                 "shared": self.poses.shared,
+                "knots": self.cfg.refine_knots,
                 "gauge": self.poses.gauge,
                 "corrections": "world-frame [rotation vector (rad), shift (world units)]",
             }

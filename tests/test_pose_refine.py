@@ -423,3 +423,91 @@ def test_refiner_reports_the_shared_turn_and_the_error_without_it():
         pr.delta.copy_(torch.randn(61, 6) * 1e-3)
     st = pr.stats()
     assert st["pose_error_aligned_deg"] < st["pose_error_deg"]
+
+
+@pytest.mark.parametrize("loop", [True, False])
+def test_knot_matrix_interpolates_linearly_between_neighbouring_knots(loop):
+    from fastenerf.pose_refine import knot_matrix
+
+    rows, knots = 41, 8
+    B = knot_matrix(rows, knots, loop).double()
+    assert B.shape == (rows, knots) and torch.allclose(B.sum(1), torch.ones(rows, dtype=B.dtype))
+    assert ((B > 0).sum(1) <= 2).all()
+    values = torch.randn(knots, dtype=torch.float64)
+    path = B @ values
+    span = (rows - 1) / (knots if loop else knots - 1)
+    x = torch.arange(rows, dtype=torch.float64) / span
+    ends = torch.cat([values, values[:1]]) if loop else values
+    want = torch.from_numpy(np.interp(x.numpy(), np.arange(len(ends)), ends.numpy()))
+    torch.testing.assert_close(path, want)
+    assert (path[0] == path[-1]) == loop or not loop  # a loop's twin row is its first
+    with pytest.raises(ValueError, match="knots"):
+        knot_matrix(rows, 1, loop)
+    with pytest.raises(ValueError, match="knots"):
+        knot_matrix(rows, rows + 1 - int(loop), loop)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_knots_give_the_rays_and_gradients_of_their_interpolated_rows(fused):
+    """A refiner with knots is the per-row refiner whose rows are B · knots: same rays, the
+    knots' gradient is Bᵀ times the rows', and the rows a batch sees step their knots only."""
+    from fastenerf.pose_refine import PoseRefiner, knot_matrix
+
+    G, K = 21, 5
+    c2w = _grid_poses(G - 1).float()
+    used = torch.ones(G, dtype=torch.bool)
+    used[-1] = False
+    gen = torch.Generator().manual_seed(3)
+    knotted = PoseRefiner(c2w, used, "none", knots=K)
+    rows = PoseRefiner(c2w, used, "none")
+    B = knot_matrix(G, K, loop=True)
+    with torch.no_grad():
+        knotted.delta.copy_(0.02 * torch.randn(K, 6, generator=gen))
+        rows.delta.copy_(B @ knotted.delta)
+    dirs = torch.nn.functional.normalize(torch.randn(6, 3, generator=gen), dim=-1)
+    idx = torch.tensor([2] * 3 + [3] * 3 + [3] * 3 + [4] * 3)  # windows 2→3 and 3→4
+    out = []
+    for pr in (knotted, rows):
+        o, d, seen = pr.rays_and_rows(dirs, idx, fused=fused)
+        (o.sum() + (d * torch.arange(3.0)).sum()).backward()
+        out.append((o.detach(), d.detach(), seen, pr.delta.grad))
+    torch.testing.assert_close(out[0][0], out[1][0])
+    torch.testing.assert_close(out[0][1], out[1][1])
+    torch.testing.assert_close(out[0][3], B.T @ out[1][3], rtol=1e-5, atol=1e-7)
+    assert out[0][2].shape == (K,) and out[0][2].tolist() == [True, True, False, False, False]
+    assert torch.equal(knotted.row_delta()[-1], knotted.row_delta()[0])  # the loop's twin
+
+
+def test_knots_are_checked_against_the_grid_and_the_shared_row(scene_config):
+    from fastenerf.self_calibration import check_knots
+
+    with pytest.raises(InputError, match="refine_knots"):
+        check_knots(41, 41)
+    check_knots(40, 41)
+    with pytest.raises(InputError, match="refine_knots"):
+        TrainConfig(refine_poses=True, refine_knots=1).validate("train")
+    with pytest.raises(InputError, match="refine_knots"):
+        TrainConfig(refine_poses=True, refine_shared=True, refine_knots=4).validate("train")
+
+
+@pytest.mark.slow
+def test_knots_recover_a_smooth_error_that_rows_leave(ball):  # noqa: F811
+    """A 2° mount error is the smoothest error along the path: 5 knots learn it from pooled
+    gradients, per-pose rows on the same run leave some poses far off (as for the shared
+    row above)."""
+    from fastenerf.perturb import perturb_mount
+
+    cfg, rig, events = ball
+    grid_t = WindowSampler(cfg.n_views, 0, cfg.t_end_us, 1, 4).grid_times(np.arange(41))
+    bad_rig, _ = perturb_mount(rig, 2.0, seed=5, grid_t=grid_t)
+    true_c2w = torch.as_tensor(rig.pose(grid_t))
+    knobs = dict(refine_poses=True, refine_lr=5e-3, refine_lr_final=5e-4, refine_start=0.0)
+    knobs.update(refine_warmup=0.0, refine_decay=0.0, refine_gauge="none")
+    cal, _ = calibration_run(
+        cfg, TrainConfig(refine_knots=5, **knobs), events, bad_rig, 60, true_c2w
+    )
+    assert cal.poses.delta.shape == (5, 6) and cal.report()["poses"]["knots"] == 5
+    st = cal.stats()
+    assert st["pose_error_max_deg"] < 0.6, st  # from 2° at every pose
+    per_pose, _ = calibration_run(cfg, TrainConfig(**knobs), events, bad_rig, 60, true_c2w)
+    assert per_pose.stats()["pose_error_max_deg"] > 2 * st["pose_error_max_deg"], st
