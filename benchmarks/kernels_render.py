@@ -192,6 +192,33 @@ def bench_composite(device="cuda", n_rays=2**16, mean_samples=64, repeats=20) ->
     return r
 
 
+def _host_sync(fn) -> str:
+    """CUDA: "none" if fn() runs without a host sync, else torch's error (its first line)."""
+    try:
+        torch.cuda.synchronize()
+        torch.cuda.set_sync_debug_mode("error")  # raises on any host sync inside the call
+        fn()
+        return "none"
+    except RuntimeError as e:
+        return str(e).splitlines()[0]
+    finally:
+        torch.cuda.set_sync_debug_mode(0)
+
+
+def _captured(fn):
+    """(graph, what fn returned while captured): fn warmed up on a side stream, as torch asks,
+    then captured into a CUDA graph (not yet replayed)."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        fn()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    with torch.cuda.graph(graph):
+        out = fn()
+    return graph, out
+
+
 def _composite_cuda_checks(layout, sig, rgbs, t_s, t_e, packed, bg, g_rgb) -> dict:
     """CUDA only: `{layout}_host_sync` ("none", or torch's error for a forward+backward run in
     sync debug mode) and `{layout}_graph_matches` (a forward+backward captured into a CUDA
@@ -204,26 +231,10 @@ def _composite_cuda_checks(layout, sig, rgbs, t_s, t_e, packed, bg, g_rgb) -> di
         gs, gc = torch.autograd.grad((out["rgb"] * g_rgb).sum() + out["depth"].sum(), (s, c))
         return out["rgb"].detach(), gs, gc
 
-    r = {}
     eager = step()
+    r = {f"{layout}_host_sync": _host_sync(step)}
     try:
-        torch.cuda.synchronize()
-        torch.cuda.set_sync_debug_mode("error")  # raises on any host sync inside the call
-        step()
-        r[f"{layout}_host_sync"] = "none"
-    except RuntimeError as e:
-        r[f"{layout}_host_sync"] = str(e).splitlines()[0]
-    finally:
-        torch.cuda.set_sync_debug_mode(0)
-    try:
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            step()  # warm-up on a side stream before capture, as torch asks
-        torch.cuda.current_stream().wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            captured = step()
+        graph, captured = _captured(step)
         graph.replay()
         torch.cuda.synchronize()
         same = all(torch.equal(a, b) for a, b in zip(captured, eager, strict=True))
@@ -361,24 +372,9 @@ def _bench_march_fixed(margs, exact, field, device, repeats) -> dict:
     )
     if not str(device).startswith("cuda"):
         return r
+    r["march_fixed_host_sync"] = _host_sync(fixed)
     try:
-        torch.cuda.synchronize()
-        torch.cuda.set_sync_debug_mode("error")  # raises on any host sync inside the call
-        fixed()
-        r["march_fixed_host_sync"] = "none"
-    except RuntimeError as e:
-        r["march_fixed_host_sync"] = str(e).splitlines()[0]
-    finally:
-        torch.cuda.set_sync_debug_mode(0)
-    try:
-        side = torch.cuda.Stream()
-        side.wait_stream(torch.cuda.current_stream())
-        with torch.cuda.stream(side):
-            fixed()  # warm-up on a side stream before capture, as torch asks
-        torch.cuda.current_stream().wait_stream(side)
-        graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(graph):
-            fixed()
+        graph, _ = _captured(fixed)
         r["warp_march_fixed_graph_ms"] = _time_ms(graph.replay, device, repeats)
         graph.replay()
         torch.cuda.synchronize()

@@ -133,15 +133,17 @@ class TiledLauncher:
     so a CPU test exercises the same lanes and tile ops. Warp makes that opt-in
     (`wp.config.enable_cpu_blocks`, otherwise a CPU block has one lane); it is switched on only
     while this launch is recorded, which fixes the block width of the recorded command and
-    leaves every other kernel's CPU launches as they were.
+    leaves every other kernel's CPU launches as they were. cpu_blocks=False records one lane
+    per CPU block instead (for kernels that loop over their tiles themselves, as the MLP's).
     """
 
-    def __init__(self, kernel, block_dim: int):
+    def __init__(self, kernel, block_dim: int, cpu_blocks: bool = True):
         self.kernel, self.block_dim, self._cmds = kernel, block_dim, {}
+        self.cpu_blocks = cpu_blocks
 
     def _record(self, blocks: int, device: str, args: list):
         cpu_blocks = wp.config.enable_cpu_blocks
-        wp.config.enable_cpu_blocks = True
+        wp.config.enable_cpu_blocks = self.cpu_blocks
         try:
             return wp.launch_tiled(
                 self.kernel,
@@ -168,9 +170,9 @@ class TiledLauncher:
 
 
 @functools.cache
-def tiled_launcher(kernel, block_dim: int) -> TiledLauncher:
+def tiled_launcher(kernel, block_dim: int, cpu_blocks: bool = True) -> TiledLauncher:
     """The process-wide TiledLauncher of a kernel at one block width."""
-    return TiledLauncher(kernel, block_dim)
+    return TiledLauncher(kernel, block_dim, cpu_blocks)
 
 
 def launch_tiled(kernel, blocks: int, block_dim: int, like: torch.Tensor, args: list) -> None:

@@ -49,6 +49,23 @@ BLOCK_DIM = 32
 _vec5 = wp.types.vector(length=5, dtype=wp.float32)
 
 
+@wp.func
+def lane_sample(
+    sigmas: wp.array(dtype=float),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    s: int,
+    inside: bool,
+):
+    """(t0, t1, optical depth) of packed sample s; zeros for a lane past the ray's end, so it
+    adds nothing to the chunk's scan."""
+    if inside:
+        t0 = t_starts[s]
+        t1 = t_ends[s]
+        return t0, t1, optical_depth(sigmas[s], t0, t1)
+    return wp.float32(0.0), wp.float32(0.0), wp.float32(0.0)
+
+
 @wp.kernel(enable_backward=False)
 def _composite_fwd_block(
     sigmas: wp.array(dtype=float),
@@ -79,13 +96,7 @@ def _composite_fwd_block(
     while chunk < n:
         i = chunk + lane
         s = start + i
-        t0 = wp.float32(0.0)
-        t1 = wp.float32(0.0)
-        tau = wp.float32(0.0)  # lanes past the end add nothing to the scan
-        if i < n:
-            t0 = t_starts[s]
-            t1 = t_ends[s]
-            tau = optical_depth(sigmas[s], t0, t1)
+        t0, t1, tau = lane_sample(sigmas, t_starts, t_ends, s, i < n)
         T_in = T * wp.exp(-wp.untile(wp.tile_scan_exclusive(wp.tile(tau))))
         key = nb
         if i >= n or not (T_in >= t_min):  # NaN stops too, as in the per-ray walk
@@ -169,13 +180,7 @@ def _composite_bwd_block_kernel(
         for chunk in range(0, used, nb):
             i = chunk + lane
             s = start + i
-            t0 = wp.float32(0.0)
-            t1 = wp.float32(0.0)
-            tau = wp.float32(0.0)
-            if i < used:
-                t0 = t_starts[s]
-                t1 = t_ends[s]
-                tau = optical_depth(sigmas[s], t0, t1)
+            t0, t1, tau = lane_sample(sigmas, t_starts, t_ends, s, i < used)
             # the forward pass's scan on the same lanes: the same T_in and w, bit for bit
             T_in = T * wp.exp(-wp.untile(wp.tile_scan_exclusive(wp.tile(tau))))
             w = T_in * one_minus_exp_neg(tau)

@@ -60,7 +60,7 @@ from typing import Any
 import torch
 import warp as wp
 
-from .common import device_of, fast_stream, fast_view, init
+from .common import fast_view, init, tiled_launcher
 
 init()
 
@@ -316,38 +316,6 @@ def _backward_kernel(dims: tuple[int, ...], tile: int, tf32: bool, want_dx: bool
 # Host side
 
 
-class _TiledLauncher:
-    """Replays one tiled kernel through a recorded `wp.Launch` (as common.Launcher, which
-    knows no block_dim), on the current stream of the tensor it is given."""
-
-    def __init__(self, kernel, block_dim: int):
-        self.kernel, self.block_dim, self._cmds = kernel, block_dim, {}
-
-    def __call__(self, blocks: int, like: torch.Tensor, args: list) -> None:
-        device = device_of(like)
-        cmd = self._cmds.get(device)
-        if cmd is None:
-            cmd = wp.launch_tiled(
-                self.kernel,
-                dim=(blocks,),
-                inputs=args,
-                device=device,
-                block_dim=self.block_dim,
-                record_cmd=True,
-            )
-            self._cmds[device] = cmd
-        else:
-            for i, a in enumerate(args):
-                cmd.set_param_at_index(i, a)
-            cmd.set_dim((blocks, cmd.block_dim))
-        cmd.launch(fast_stream(like))
-
-
-@functools.lru_cache(maxsize=128)
-def _launcher(kernel, block_dim: int) -> _TiledLauncher:
-    return _TiledLauncher(kernel, block_dim)
-
-
 @functools.cache
 def _sm_count(index: int) -> int:
     return torch.cuda.get_device_properties(index).multi_processor_count
@@ -384,7 +352,8 @@ class _FusedMLP(torch.autograd.Function):
             plan = _Plan(dims, tile, tf32, x_cols, "fwd")
             nb = _n_blocks(x, n_tiles, 4 * (plan.n_params + plan.fwd_size), blocks)
             kernel = _forward_kernel(dims, tile, tf32, x_cols)
-            _launcher(kernel, block_dim)(nb, x, [xv, fast_view(flat), n_tiles, nb, fast_view(y)])
+            args = [xv, fast_view(flat), n_tiles, nb, fast_view(y)]
+            tiled_launcher(kernel, block_dim, cpu_blocks=False)(nb, x, args)
         ctx.save_for_backward(x, flat)
         ctx.cfg, ctx.dims = cfg, dims
         return y
@@ -407,7 +376,7 @@ class _FusedMLP(torch.autograd.Function):
             kernel = _backward_kernel(dims, tile, tf32, want_dx, x_cols)
             args = [xv, fast_view(flat), fast_view(g), n_tiles, nb]
             args += [fast_view(dx) if want_dx else fast_view(g), fast_view(dw)]
-            _launcher(kernel, block_dim)(nb, x, args)
+            tiled_launcher(kernel, block_dim, cpu_blocks=False)(nb, x, args)
         grads, off = [], 0
         for k, need in enumerate(ctx.needs_input_grad[2:]):
             size = dims[k + 1] * dims[k]

@@ -1,4 +1,5 @@
 """python blockpy.py -m MODULE ARGS: run MODULE with the block composite layout as "auto"."""
+
 import runpy
 import sys
 
