@@ -36,7 +36,7 @@ from typing import Literal
 import torch
 import warp as wp
 
-from .alpha import one_minus_exp_neg, optical_depth
+from .alpha import one_minus_exp_neg, optical_depth, ray_output_grads
 from .common import as_float32, fast_view, init, launch, launch_tiled
 from .composite_block import BLOCK_DIM, _composite_bwd_block_kernel, _composite_fwd_block
 
@@ -130,20 +130,19 @@ def _composite_bwd_kernel(has_rgb: bool, has_depth: bool, has_opacity: bool, has
         start = packed_info[r][0]
         used = n_used[r]
         b = bg[r * bg_stride]
-        gc = wp.vec3(0.0)
-        gd = wp.float32(0.0)
-        go = wp.float32(0.0)
-        # Total sum_j e_j w_j from the forward outputs: out_rgb - bg = sum w c - opacity * bg.
-        total = wp.float32(0.0)
-        if wp.static(has_rgb):
-            gc = g_rgb[r]
-            total += wp.dot(gc, out_rgb[r] - b)
-        if wp.static(has_depth):
-            gd = g_depth[r]
-            total += gd * out_depth[r]
-        if wp.static(has_opacity):
-            go = g_opacity[r]
-            total += go * out_opacity[r]
+        gc, gd, go, total = ray_output_grads(
+            r,
+            b,
+            out_rgb,
+            out_depth,
+            out_opacity,
+            g_rgb,
+            g_depth,
+            g_opacity,
+            wp.static(has_rgb),
+            wp.static(has_depth),
+            wp.static(has_opacity),
+        )
         if wp.static(has_weights):
             for i in range(used):
                 total += g_weights[start + i] * weights[start + i]

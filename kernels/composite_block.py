@@ -41,7 +41,7 @@ import functools
 
 import warp as wp
 
-from .alpha import one_minus_exp_neg, optical_depth
+from .alpha import one_minus_exp_neg, optical_depth, ray_output_grads
 
 BLOCK_DIM = 32
 """Threads per ray (one warp on CUDA); the kernels read the width from wp.block_dim()."""
@@ -156,20 +156,19 @@ def _composite_bwd_block_kernel(
         start = packed_info[r][0]
         used = n_used[r]
         b = bg[r * bg_stride]
-        gc = wp.vec3(0.0)
-        gd = wp.float32(0.0)
-        go = wp.float32(0.0)
-        # total = sum_j e_j w_j from the forward outputs (out_rgb - bg = sum w c - opacity bg)
-        total = wp.float32(0.0)
-        if wp.static(has_rgb):
-            gc = g_rgb[r]
-            total += wp.dot(gc, out_rgb[r] - b)
-        if wp.static(has_depth):
-            gd = g_depth[r]
-            total += gd * out_depth[r]
-        if wp.static(has_opacity):
-            go = g_opacity[r]
-            total += go * out_opacity[r]
+        gc, gd, go, total = ray_output_grads(
+            r,
+            b,
+            out_rgb,
+            out_depth,
+            out_opacity,
+            g_rgb,
+            g_depth,
+            g_opacity,
+            wp.static(has_rgb),
+            wp.static(has_depth),
+            wp.static(has_opacity),
+        )
         if wp.static(has_weights):
             part = wp.float32(0.0)
             for j in range(lane, used, nb):
