@@ -38,7 +38,7 @@ import warp as wp
 
 from .alpha import one_minus_exp_neg, optical_depth, ray_output_grads
 from .common import as_float32, fast_view, init, launch, launch_tiled
-from .composite_block import BLOCK_DIM, _composite_bwd_block_kernel, _composite_fwd_block
+from .composite_block import BLOCK_DIM, composite_bwd_block_kernel, composite_fwd_block
 
 T_MIN = 1e-4
 """Transmittance below which a ray stops (instant-ngp's early termination)."""
@@ -245,7 +245,7 @@ class _Composite(torch.autograd.Function):
         _launch(
             layout,
             _composite_fwd,
-            _composite_fwd_block,
+            composite_fwd_block,
             R,
             sigmas,
             [
@@ -285,7 +285,7 @@ class _Composite(torch.autograd.Function):
             _launch(
                 ctx.layout,
                 _composite_bwd_kernel(*flags),
-                _composite_bwd_block_kernel(*flags),
+                composite_bwd_block_kernel(*flags),
                 R,
                 sigmas,
                 [

@@ -67,7 +67,7 @@ def lane_sample(
 
 
 @wp.kernel(enable_backward=False)
-def _composite_fwd_block(
+def composite_fwd_block(
     sigmas: wp.array(dtype=float),
     rgbs: wp.array(dtype=wp.vec3),
     t_starts: wp.array(dtype=float),
@@ -122,7 +122,7 @@ def _composite_fwd_block(
 
 
 @functools.cache
-def _composite_bwd_block_kernel(
+def composite_bwd_block_kernel(
     has_rgb: bool, has_depth: bool, has_opacity: bool, has_weights: bool
 ):
     """Backward block kernel; as `composite._composite_bwd_kernel`, only the gradient terms of

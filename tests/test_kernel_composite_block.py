@@ -15,8 +15,8 @@ from fastenerf.kernels import composite as comp
 from fastenerf.kernels.composite import CUDA_AUTO, T_MIN, composite, resolve_layout
 from fastenerf.kernels.composite_block import (
     BLOCK_DIM,
-    _composite_bwd_block_kernel,
-    _composite_fwd_block,
+    composite_bwd_block_kernel,
+    composite_fwd_block,
 )
 from tests.test_kernel_composite import _packed, _random_case, _ray_of, ref_composite
 
@@ -70,7 +70,7 @@ def test_block_layout_runs_32_lanes_on_the_cpu():
     cpu_blocks = wp.config.enable_cpu_blocks
     sig, rgbs, t_s, t_e, pi = _random_case(R=8, max_n=70)
     _run(sig, rgbs, t_s, t_e, pi, "block")
-    for kernel in (_composite_fwd_block, _composite_bwd_block_kernel(True, True, True, True)):
+    for kernel in (composite_fwd_block, composite_bwd_block_kernel(True, True, True, True)):
         assert common.tiled_launcher(kernel, BLOCK_DIM)._cmds["cpu"].block_dim == 32
     assert wp.config.enable_cpu_blocks == cpu_blocks  # switched on only while recording
 
