@@ -259,7 +259,8 @@ def test_trunc_exp_keeps_density_and_gradient_finite():
     assert torch.isfinite(y).all() and torch.isfinite(x.grad).all()
     below = logits <= 15
     assert torch.allclose(y[below], torch.exp(logits[below]), rtol=1e-6, atol=0)
-    assert (y[~below] == math.exp(15.0)).all()
+    # clipped at e^15 as float32 rounds it (torch's exp is within 1 ulp, CPU-dependent)
+    assert torch.allclose(y[~below], torch.full_like(y[~below], math.exp(15.0)), rtol=1e-6, atol=0)
     assert (x.grad[~below] > 0).all()  # an overshooting logit can still be pushed down
     # bf16 logits stay finite as well (e^15 is far below bf16's max)
     yb = trunc_exp(logits.to(torch.bfloat16))
