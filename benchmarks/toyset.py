@@ -3,7 +3,7 @@
 A torus leaning over a capsule and a cone, coloured by position with stripes (trimesh
 primitives, vertex colours), none of them a built-in scene's shapes::
 
-    python -m benchmarks.toyset toyset.ply
+    fastenerf bench toyset toyset.ply      # or: python -m benchmarks.toyset toyset.ply
     fastenerf synth --mesh toyset.ply --out DATA/toyset
 """
 
@@ -13,6 +13,11 @@ import numpy as np
 import trimesh
 from trimesh import creation
 from trimesh import transformations as tf
+
+from fastenerf.mesh import export_mesh
+from fastenerf.outputs import MESH, claim_output
+
+from .cli import benchmark_main
 
 
 def _coloured(mesh: trimesh.Trimesh, base) -> trimesh.Trimesh:
@@ -41,12 +46,20 @@ def toyset() -> trimesh.Trimesh:
     return trimesh.util.concatenate([_coloured(m, base) for m, base in parts])
 
 
-def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("out", help="mesh file to write (.ply keeps the vertex colours)")
-    args = ap.parse_args(argv)
-    toyset().export(args.out)
+def _add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("out", help="mesh file to write (.ply keeps the vertex colours)")
+    p.add_argument("--force", action="store_true", help="replace an existing mesh file")
+
+
+def _run(args: argparse.Namespace) -> int:
+    claim_output(args.out, MESH, force=args.force, flag="out")
+    export_mesh(toyset(), args.out)  # atomically: a failed write leaves what was there
+    return 0
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    return benchmark_main("toyset", __doc__, _add_arguments, _run, argv, prog=prog)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
