@@ -10,7 +10,10 @@
 # with spaces or quotes goes in as one word, e.g. perturb={"pose_error_deg":1.0}. OUT/all.done
 # appears at the end; OUT/partial.tgz holds every JSON and log so far (checkpoints deleted).
 # On the lent machine: start it detached (setsid nohup ... &) and keep a call in flight
-# (the machine goes back 30 s after a call returns, and the run with it).
+# (the machine goes back 30 s after a call returns, and the run with it); `gpu_poll.sh` is
+# such a call. With WAIT_READY=S a run first waits up to S seconds for DATA/SCENE.ready (touch
+# it once a later call has copied that scene in), so the list can start before every scene is
+# carried; a scene still not ready is logged as skipped.
 # Bad input (a missing DATA or RUNS, an OUT that exists or cannot be made) ends with one line
 # on stderr and exit code 2 before anything is written; an existing OUT is left as it was.
 set -u
@@ -33,6 +36,11 @@ while read -r name scene sets; do
     case "$name" in '' | '#'*) continue ;; esac
     read -r -a kv <<< "$sets"
     dir="$OUT/$scene/$name"
+    if [ -n "${WAIT_READY:-}" ]; then
+        end=$(( $(date +%s) + WAIT_READY ))
+        while [ ! -e "$DATA/$scene.ready" ] && [ "$(date +%s)" -lt "$end" ]; do sleep 2; done
+        [ -e "$DATA/$scene.ready" ] || { log "$scene $name skipped: $DATA/$scene.ready not there"; continue; }
+    fi
     $PY -m benchmarks.error_vs_time --scenes "$DATA/$scene" --backends ngp \
         --budget-s "ngp=$BUDGET_S" --device "$DEVICE" --quiet --commit "$COMMIT" --out "$dir" \
         ${kv[@]:+--set "${kv[@]}"} > "$OUT/$scene-$name.log" 2>&1

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 from pathlib import Path
 
@@ -545,3 +546,53 @@ def test_gpu_runs60_bad_input_is_one_line_exit_2_and_leaves_out_alone(tmp_path):
         assert r.returncode == 2 and len(err.splitlines()) == 1 and words in err, (args, err)
     assert sorted(p.name for p in out.iterdir()) == ["keep.json"]
     assert not any((tmp_path / n).exists() for n in ("o1", "o2"))
+
+
+def test_gpu_runs60_skips_a_scene_whose_data_never_arrives(tmp_path):
+    """WAIT_READY: a run waits for DATA/SCENE.ready; one that does not come is logged as
+    skipped, and the list still ends (all.done), running nothing for it."""
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu_runs60.sh"
+    (tmp_path / "data" / "late").mkdir(parents=True)
+    runs = tmp_path / "runs.txt"
+    runs.write_text("# a comment\nfirst late refine_poses=true\n")
+    out = tmp_path / "out"
+    env = {**os.environ, "WAIT_READY": "1", "PY": "false"}
+    r = subprocess.run(
+        ["bash", str(script), str(tmp_path / "data"), str(out), str(runs)],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
+    assert r.returncode == 0, r.stderr
+    log = (out / "progress.log").read_text()
+    assert "late first skipped" in log and (out / "all.done").exists()
+    assert not (out / "late").exists()
+
+
+def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
+    """gpu_poll.sh: once every list is done, RESULTS' JSON, Markdown and logs go to
+    $OUT/res.tgz, checkpoints left out; bad arguments are one line and exit code 2."""
+    import tarfile
+
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu_poll.sh"
+    res = tmp_path / "o20"
+    run = res / "a" / "plant" / "none0"
+    run.mkdir(parents=True)
+    (run / "error_vs_time.json").write_text("{}")
+    (run / "ckpt.pt").write_bytes(b"x" * 100)
+    (res / "a" / "progress.log").write_text("[00:00:01 +0s] plant none0 rc 0\n")
+    (res / "a" / "all.done").touch()
+    back = tmp_path / "back"
+    back.mkdir()
+    env = {**os.environ, "OUT": str(back)}
+    r = subprocess.run(
+        ["bash", str(script), str(res), "30"], capture_output=True, text=True, env=env
+    )
+    assert r.returncode == 0 and "all done" in r.stdout, r.stderr
+    with tarfile.open(back / "res.tgz") as t:
+        names = set(t.getnames())
+    assert "o20/a/plant/none0/error_vs_time.json" in names and "o20/a/progress.log" in names
+    assert not any(n.endswith(".pt") for n in names)
+    for args in ([], [str(tmp_path / "nothing"), "5"]):
+        r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True, env=env)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
