@@ -400,6 +400,9 @@ class TrainConfig:
     in full once its mean gradient stands 2 x gate standard errors from zero, none below gate."""
     refine_gate_beta: float = field(default=0.99, metadata={"min": 0.0, "max": 0.9999})
     """The gate's averaging of a row's gradients (β; ~1/(1 − β) visits)."""
+    refine_gate_prior_deg: float | None = field(default=None, metadata={"min": 0.0, "max": 180})
+    """Gate off where the motion prior turned the given poses by more than this mean (deg):
+    they are known to be off, so no step is held back as noise (None: the gate always holds)."""
     estimate_threshold: bool = False
     """Estimate the thresholds' ratio C_pos/C_neg (product kept: the scale is not observable)."""
     threshold_ratio: Literal["auto", "loop", "learn"] = "auto"

@@ -64,6 +64,16 @@ def pose_lr(cfg: TrainConfig, progress: float) -> float:
     return ramp * cfg.refine_lr * (cfg.refine_lr_final / cfg.refine_lr) ** r
 
 
+def row_gate(cfg: TrainConfig, prior_turn_deg: float | None) -> float:
+    """The row Adam's significance gate: refine_gate, or 0 (off) where the motion prior turned
+    the given poses by more than refine_gate_prior_deg on average (prior_turn_deg: its report's
+    mean_turn_deg, None without the prior). The gate is for poses that are already right."""
+    limit = cfg.refine_gate_prior_deg
+    if limit is not None and prior_turn_deg is not None and prior_turn_deg > limit:
+        return 0.0
+    return cfg.refine_gate
+
+
 def pose_gauge(cfg: TrainConfig) -> str:
     """The refiner's gauge: none for a shared row (it has none); "auto" is none for turns
     only, since with the centres held at the given ones a turn shared by every camera about
@@ -93,8 +103,10 @@ class SelfCalibration:
         field: Field,
         true_c2w: torch.Tensor | None = None,
         ratio: float | None = None,
+        prior_turn_deg: float | None = None,
     ):
         self.cfg, self.field = cfg, field
+        self.gate = row_gate(cfg, prior_turn_deg) if cfg.refine_optimizer == "row-adam" else 0.0
         self.decay = cfg.refine_defaults()[1] if cfg.refine_poses else 0.0
         self.poses: PoseRefiner | None = None
         self.thresholds: ThresholdEstimator | None = None
@@ -116,7 +128,7 @@ class SelfCalibration:
             group = {"params": [self.poses.delta], "lr": cfg.refine_lr, "name": "poses"}
             group["betas"] = betas
             if cfg.refine_optimizer == "row-adam":
-                gate = {"gate": cfg.refine_gate, "gate_beta": cfg.refine_gate_beta}
+                gate = {"gate": self.gate, "gate_beta": cfg.refine_gate_beta}
                 self.pose_optimizer = RowAdam([group], cfg.refine_lr, betas, ADAM_EPS, **gate)
             else:
                 groups.append(group)
@@ -340,6 +352,7 @@ class SelfCalibration:
                 "rows": 1 if self.poses.shared else int(self.poses.used.sum()),
                 "shared": self.poses.shared,
                 "knots": self.cfg.refine_knots,
+                "gate": self.gate,
                 "gauge": self.poses.gauge,
                 "corrections": "world-frame [rotation vector (rad), shift (world units)]",
             }

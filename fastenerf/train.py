@@ -247,8 +247,9 @@ class Trainer:
         if true_c2w is not None:
             true_c2w = torch.as_tensor(true_c2w, device=self.device)
         thresholds = (sc.pos_threshold, sc.neg_threshold)
-        ratio = measured_ratio(self.scene, self.cfg)
-        return SelfCalibration(self.cfg, self.sampler, thresholds, self.field, true_c2w, ratio)
+        turn = (self.smoothing or {}).get("mean_turn_deg")  # the prior's, for the gate
+        args = (thresholds, self.field, true_c2w, measured_ratio(self.scene, self.cfg), turn)
+        return SelfCalibration(self.cfg, self.sampler, *args)
 
     @property
     def rays_per_step_total(self) -> int:

@@ -189,3 +189,43 @@ def test_the_trainer_smooths_and_records(tiny_scene, tmp_path):
     assert sm["error_after_deg"] < 0.6 * sm["error_before_deg"]
     with pytest.raises(InputError, match="smooth_poses 201 is longer"):
         Trainer(scene, dataclasses.replace(cfg, smooth_poses=201), tmp_path / "x")
+
+
+def test_the_gate_eases_only_where_the_prior_found_the_poses_off():
+    """refine_gate_prior_deg: the gate is off where the prior turned the given poses by more
+    than that on average; it holds where they were right, without the prior, and by default."""
+    from fastenerf.self_calibration import row_gate
+
+    cfg = TrainConfig(refine_poses=True, refine_gate=1.5, refine_gate_prior_deg=0.05)
+    assert row_gate(cfg, 2.0) == 0.0  # a 2° study: the prior turned the poses by ~2°
+    assert row_gate(cfg, 1e-12) == 1.5  # exact turntable poses: the prior moves none
+    assert row_gate(cfg, None) == 1.5  # no prior
+    assert row_gate(dataclasses.replace(cfg, refine_gate_prior_deg=None), 2.0) == 1.5
+    with pytest.raises(InputError, match="refine_gate_prior_deg"):
+        dataclasses.replace(cfg, refine_gate_prior_deg=-1.0).validate()
+
+
+@pytest.mark.parametrize("error_deg, gate", [(2.0, 0.0), (0.0, 1.5)])
+def test_the_trainer_eases_the_gate_after_the_prior(tiny_scene, tmp_path, error_deg, gate):
+    """The run's row Adam takes the eased gate, and config.json records the one it took."""
+    from fastenerf.config import train_preset
+
+    cfg = train_preset(
+        "fast",
+        "vanilla",
+        steps=1,
+        rays_per_step=16,
+        windows_per_step=2,
+        smooth_poses=21,
+        smooth_order=1,
+        refine_poses=True,
+        refine_gate_prior_deg=0.05,
+        perturb=PerturbConfig(pose_error_deg=error_deg),
+        backend_options={"depth": 2, "width": 16, "n_coarse": 8, "n_fine": 8},
+    )
+    tr = Trainer(load_scene(tiny_scene), cfg, tmp_path / "run")
+    assert tr.selfcal.pose_optimizer.gate == gate
+    tr.write_config()
+    conf = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert conf["self_calibration"]["poses"]["gate"] == gate
+    assert (conf["pose_smoothing"]["mean_turn_deg"] > 0.05) == (gate == 0.0)
