@@ -162,22 +162,30 @@ def test_bad_orders_are_refused():
             TrainConfig(smooth_order=order).validate()
 
 
-def test_the_trainer_smooths_and_records(tiny_scene, tmp_path):
-    """A pose study's run with the prior: the sampler's grid poses are the smoothed ones, and
-    config.json says how far they were from the truth before and after."""
+def prior_cfg(error_deg: float = 2.0, **kw) -> TrainConfig:
+    """One tiny vanilla step of a pose study (error_deg) with the prior over 21 grid poses."""
     from fastenerf.config import train_preset
 
-    scene = load_scene(tiny_scene)
-    cfg = train_preset(
+    tiny = {"depth": 2, "width": 16, "n_coarse": 8, "n_fine": 8}
+    perturb = PerturbConfig(pose_error_deg=error_deg)
+    batch = {"rays_per_step": 16, "windows_per_step": 2}
+    return train_preset(
         "fast",
         "vanilla",
         steps=1,
-        rays_per_step=16,
-        windows_per_step=2,
         smooth_poses=21,
-        perturb=PerturbConfig(pose_error_deg=2.0),
-        backend_options={"depth": 2, "width": 16, "n_coarse": 8, "n_fine": 8},
+        perturb=perturb,
+        backend_options=tiny,
+        **batch,
+        **kw,
     )
+
+
+def test_the_trainer_smooths_and_records(tiny_scene, tmp_path):
+    """A pose study's run with the prior: the sampler's grid poses are the smoothed ones, and
+    config.json says how far they were from the truth before and after."""
+    scene = load_scene(tiny_scene)
+    cfg = prior_cfg()
     tr = Trainer(scene, cfg, tmp_path / "run")
     grid_t = tr.windows.grid_times(np.arange(tr.windows.n_views + 1))
     assert np.allclose(tr.sampler.grid_c2w.cpu().numpy(), tr.rig.pose(grid_t), atol=1e-6)
@@ -208,21 +216,8 @@ def test_the_gate_eases_only_where_the_prior_found_the_poses_off():
 @pytest.mark.parametrize("error_deg, gate", [(2.0, 0.0), (0.0, 1.5)])
 def test_the_trainer_eases_the_gate_after_the_prior(tiny_scene, tmp_path, error_deg, gate):
     """The run's row Adam takes the eased gate, and config.json records the one it took."""
-    from fastenerf.config import train_preset
-
-    cfg = train_preset(
-        "fast",
-        "vanilla",
-        steps=1,
-        rays_per_step=16,
-        windows_per_step=2,
-        smooth_poses=21,
-        smooth_order=1,
-        refine_poses=True,
-        refine_gate_prior_deg=0.05,
-        perturb=PerturbConfig(pose_error_deg=error_deg),
-        backend_options={"depth": 2, "width": 16, "n_coarse": 8, "n_fine": 8},
-    )
+    kw = {"smooth_order": 1, "refine_poses": True, "refine_gate_prior_deg": 0.05}
+    cfg = prior_cfg(error_deg, **kw)
     tr = Trainer(load_scene(tiny_scene), cfg, tmp_path / "run")
     assert tr.selfcal.pose_optimizer.gate == gate
     tr.write_config()
