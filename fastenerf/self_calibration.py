@@ -92,7 +92,9 @@ class SelfCalibration:
     cfg: the resolved TrainConfig; sampler: the run's RaySampler (built with_poses /
     with_parts as cfg asks); thresholds: scene.json's (C_pos, C_neg); field: the field whose
     encoding the coarse-to-fine schedule weights; true_c2w: optional (G, 4, 4) exact grid
-    poses (a pose-error study's unperturbed rig), for the error stats.
+    poses (a pose-error study's unperturbed rig), for the error stats; ratio: a measured
+    threshold ratio, or None; prior_turn_deg: the motion prior's mean turn of the given poses
+    (degrees), or None without the prior, for the gate (`row_gate`).
     """
 
     def __init__(
