@@ -10,6 +10,7 @@
 set -u
 [ $# -eq 2 ] || { echo "gpu_poll.sh: error: usage: gpu_poll.sh RESULTS SECONDS" >&2; exit 2; }
 [ -d "$1" ] || { echo "gpu_poll.sh: error: RESULTS $1 is not a folder" >&2; exit 2; }
+[[ "$2" =~ ^[0-9]+$ ]] || { echo "gpu_poll.sh: error: SECONDS $2 is not a whole number" >&2; exit 2; }
 [ -n "${OUT:-}" ] && [ -d "$OUT" ] || { echo "gpu_poll.sh: error: \$OUT is not a folder" >&2; exit 2; }
 RESULTS=$(realpath "$1"); end=$(( $(date +%s) + $2 ))
 done_yet() {

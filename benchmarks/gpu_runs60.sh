@@ -21,6 +21,7 @@ fail() { echo "gpu_runs60.sh: error: $*" >&2; exit 2; }
 [ $# -ge 3 ] || fail "usage: gpu_runs60.sh DATA OUT RUNS [COMMIT]"
 [ -d "$1" ] || fail "DATA $1 is not a folder"
 [ -f "$3" ] && [ -r "$3" ] || fail "RUNS $3 is not a readable file"
+[[ "${WAIT_READY:-0}" =~ ^[0-9]+$ ]] || fail "WAIT_READY ${WAIT_READY} is not a whole number of seconds"
 [ ! -e "$2" ] || fail "OUT $2 exists: give a new folder (nothing was written)"
 mkdir -p "$2" 2>/dev/null || fail "OUT $2 cannot be made"
 DATA=$(realpath "$1"); OUT=$(realpath "$2"); RUNS=$(realpath "$3"); COMMIT=${4:-unknown}

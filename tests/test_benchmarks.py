@@ -523,8 +523,8 @@ def test_compare_runs_plots_one_panel_per_prefix_and_refuses_a_missing_folder(tm
 
 
 def test_gpu_runs60_bad_input_is_one_line_exit_2_and_leaves_out_alone(tmp_path):
-    """benchmarks/gpu_runs60.sh refuses a missing DATA or RUNS, an existing OUT and an OUT it
-    cannot make, before it runs or writes anything."""
+    """benchmarks/gpu_runs60.sh refuses a missing DATA or RUNS, an existing OUT, an OUT it
+    cannot make and a WAIT_READY that is no number, before it runs or writes anything."""
     script = Path(__file__).parents[1] / "benchmarks" / "gpu_runs60.sh"
     runs = tmp_path / "runs.txt"
     runs.write_text("plain scene\n")
@@ -534,18 +534,20 @@ def test_gpu_runs60_bad_input_is_one_line_exit_2_and_leaves_out_alone(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
     cases = [
-        ([], "usage"),
-        ([str(tmp_path / "no-data"), str(tmp_path / "o1"), str(runs)], "is not a folder"),
-        ([str(tmp_path), str(tmp_path / "o2"), str(tmp_path / "no-runs")], "not a readable file"),
-        ([str(tmp_path), str(out), str(runs)], "exists"),
-        ([str(tmp_path), str(blocker / "o3"), str(runs)], "cannot be made"),
+        ([], {}, "usage"),
+        ([str(tmp_path / "no-data"), str(tmp_path / "o1"), str(runs)], {}, "is not a folder"),
+        ([str(tmp_path), str(tmp_path / "o2"), str(tmp_path / "no-runs")], {}, "readable file"),
+        ([str(tmp_path), str(out), str(runs)], {}, "exists"),
+        ([str(tmp_path), str(blocker / "o3"), str(runs)], {}, "cannot be made"),
+        ([str(tmp_path), str(tmp_path / "o4"), str(runs)], {"WAIT_READY": "x"}, "WAIT_READY"),
     ]
-    for args, words in cases:
-        r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True)
+    for args, extra, words in cases:
+        env = {**os.environ, **extra}
+        r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True, env=env)
         err = r.stderr.strip()
         assert r.returncode == 2 and len(err.splitlines()) == 1 and words in err, (args, err)
     assert sorted(p.name for p in out.iterdir()) == ["keep.json"]
-    assert not any((tmp_path / n).exists() for n in ("o1", "o2"))
+    assert not any((tmp_path / n).exists() for n in ("o1", "o2", "o4"))
 
 
 def test_gpu_runs60_skips_a_scene_whose_data_never_arrives(tmp_path):
@@ -593,6 +595,6 @@ def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
         names = set(t.getnames())
     assert "o20/a/plant/none0/error_vs_time.json" in names and "o20/a/progress.log" in names
     assert not any(n.endswith(".pt") for n in names)
-    for args in ([], [str(tmp_path / "nothing"), "5"]):
+    for args in ([], [str(tmp_path / "nothing"), "5"], [str(res), "soon"]):
         r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True, env=env)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
