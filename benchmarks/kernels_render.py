@@ -15,6 +15,9 @@ Plain-PyTorch baselines:
     midpoint in the dense bool grid, compaction with boolean masks (the same intervals as the
     Warp marcher with cone_angle = 0 and no jitter, so sample counts must agree).
 
+The march is also timed on a copy of the grid without empty-space blocks (`block=1`, cell by
+cell), in the same call, with a check that both give the same samples.
+
 `march_rays_fixed` (fixed-capacity buffers, no host sync) is timed beside `march_rays` with
 25 % spare capacity: eagerly, and on CUDA also replayed from a CUDA graph, with a check that a
 call makes no host sync (torch's sync debug mode) and that its samples are march_rays' own.
@@ -302,6 +305,7 @@ def bench_march_composite(
     r["warp_march_ms"] = _time_ms(wmarch, device, repeats)
     r["torch_march_ms"] = _time_ms(tmarch, device, max(2, repeats // 2), warmup=1)
     r["speedup_march"] = r["torch_march_ms"] / r["warp_march_ms"]
+    r.update(_bench_march_cellwise(margs, grid, wmarch(), device, repeats))
     r["warp_pipeline_ms"] = _time_ms(lambda: pipeline(wmarch, composite), device, repeats)
     r["torch_pipeline_ms"] = _time_ms(
         lambda: pipeline(tmarch, torch_composite), device, max(2, repeats // 2), warmup=1
@@ -336,7 +340,23 @@ def bench_march_composite(
     # minimal bytes of the two marching passes: rays in twice, counts, samples out
     march_bytes = 12 * S + n_rays * (2 * 24 + 4 + 8)
     r["march_GBps"] = march_bytes / r["warp_march_ms"] * 1e-6
+    r["march_blocks_speedup"] = r["warp_march_cellwise_ms"] / r["warp_march_ms"]
     r["copy_GBps"] = copy_bandwidth_gbs(device)
+    return r
+
+
+def _bench_march_cellwise(margs, grid, exact, device, repeats) -> dict:
+    """march_rays on a copy of `grid` with no blocks (empty space crossed cell by cell) against
+    the grid's own blocks (`exact`: its output): times in one call, and whether they agree."""
+    cellwise = OccupancyGrid(
+        grid.aabb_list, grid.resolution, grid.n_cascades, device=device, block=1
+    )
+    cellwise.load_state_dict(grid.state_dict())
+    cargs = (*margs[:3], cellwise, *margs[4:])
+    r = {"block": grid.block, "empty_block_fraction": (grid.blocks == 0).float().mean().item()}
+    r["warp_march_cellwise_ms"] = _time_ms(lambda: march_rays(*cargs), device, repeats)
+    out = march_rays(*cargs)
+    r["march_cellwise_matches"] = all(torch.equal(x, y) for x, y in zip(out, exact, strict=True))
     return r
 
 

@@ -4,7 +4,10 @@ Geometry. Cascade k covers the base `aabb` scaled by 2**k about its centre, spli
 `resolution`**3 cells. A point belongs to the finest cascade that contains it (faces inclusive).
 Cell (k, ix, iy, iz) has flat id ``((k * R + ix) * R + iy) * R + iz``; its occupancy is bit
 ``id & 7`` of byte ``id >> 3`` of `bitfield` (uint8, C * R**3 / 8 bytes, 256 KiB per 128**3
-cascade, so marching stays in cache).
+cascade, so marching stays in cache). `blocks` (uint8, one byte per block of F**3 cells of one
+cascade, F = `block_factor`) is 1 where any cell of the block is occupied: the marcher crosses an
+empty block in one jump instead of cell by cell. Blocks never straddle the region of a finer
+cascade (F divides R / 4), so a jump never passes over cells that a finer cascade holds.
 
 State. `density` (C, R**3) float32 holds the EMA of sigma (1/world units) per cell; cells that
 can never hold anything (seen by no training camera, or entirely outside the cylinder clip)
@@ -79,6 +82,30 @@ def bit_at(bitfield: wp.array(dtype=wp.uint8), c: wp.vec4i, res: int) -> int:
     return (int(bitfield[gid >> 3]) >> (gid & 7)) & 1
 
 
+@wp.func
+def block_corner(c: wp.vec4i, f: int) -> wp.vec4i:
+    """The first cell (level, ix, iy, iz) of the f**3-cell block holding cell c."""
+    return wp.vec4i(c[0], (c[1] / f) * f, (c[2] / f) * f, (c[3] / f) * f)
+
+
+@wp.func
+def block_bit(blocks: wp.array(dtype=wp.uint8), c: wp.vec4i, res: int, f: int) -> int:
+    """1 if any cell of the f**3-cell block holding cell c (level >= 0) is occupied."""
+    rb = res / f
+    return int(blocks[((c[0] * rb + c[1] / f) * rb + c[2] / f) * rb + c[3] / f])
+
+
+def block_factor(resolution: int, n_cascades: int) -> int:
+    """Cells per block edge: the largest of 8, 4, 2 that divides the resolution (R / 4 with
+    several cascades, so no block straddles a finer cascade) and leaves >= 2 blocks per axis;
+    1 (no blocks) if none does."""
+    edge = resolution // 4 if n_cascades > 1 else resolution
+    for f in (8, 4, 2):
+        if edge % f == 0 and resolution // f >= 2:
+            return f
+    return 1
+
+
 @functools.cache
 def locate_func(n_cascades: int):
     """`locate(p, center, inv_half, res) -> vec4i(level, ix, iy, iz)`, level -1 outside every
@@ -140,6 +167,25 @@ def _pack_bits(
         if density[b * 8 + k] > thre:
             byte = byte | (1 << k)
     bitfield[b] = wp.uint8(byte)
+
+
+@wp.kernel
+def _pack_blocks(
+    bitfield: wp.array(dtype=wp.uint8),
+    res: int,
+    f: int,
+    blocks: wp.array(dtype=wp.uint8),
+):
+    b = wp.tid()
+    c = cell_of_id(b, res / f)  # (level, block x, y, z)
+    occ = wp.int32(0)
+    for i in range(f):
+        for j in range(f):
+            row = ((c[0] * res + c[1] * f + i) * res + c[2] * f + j) * res + c[3] * f
+            for k in range(f):
+                gid = row + k
+                occ = occ | ((int(bitfield[gid >> 3]) >> (gid & 7)) & 1)
+    blocks[b] = wp.uint8(occ)
 
 
 @wp.kernel
@@ -236,6 +282,8 @@ class OccupancyGrid:
             outside are never occupied, and the marcher drops samples outside it.
         step_size: minimal marching step that `threshold` refers to (default
             `default_step_size(aabb)`).
+        block: cells per edge of the empty-space blocks the marcher jumps over (default
+            `block_factor`; 1: none). It must divide the resolution (R / 4 with cascades).
     """
 
     def __init__(
@@ -246,6 +294,7 @@ class OccupancyGrid:
         cylinder=None,
         step_size: float | None = None,
         device: str | torch.device = "cpu",
+        block: int | None = None,
     ):
         init()
         a = [float(v) for v in aabb]
@@ -267,6 +316,12 @@ class OccupancyGrid:
         self.density = torch.zeros(self.n_cascades, self.resolution**3, device=self.device)
         self._valid_cache: torch.Tensor | None = None  # `_valid_ids`; None after any -1 write
         self.bitfield = torch.zeros(n // 8, dtype=torch.uint8, device=self.device)
+        self.block = block_factor(resolution, n_cascades) if block is None else int(block)
+        edge = self.resolution // 4 if self.n_cascades > 1 else self.resolution
+        if self.block < 1 or edge % self.block:
+            raise ValueError(f"block must divide {edge} (resolution {resolution}), got {block}")
+        n_blocks = n // self.block**3 if self.block > 1 else 1  # 1: a placeholder, never read
+        self.blocks = torch.zeros(n_blocks, dtype=torch.uint8, device=self.device)
         # Until the first update every valid cell (density 0 > -0.5) is occupied.
         self.threshold = torch.full((1,), -0.5, device=self.device)
         if self.cylinder is not None:
@@ -328,6 +383,10 @@ class OccupancyGrid:
         self._launch(
             _pack_bits, self.n_cells // 8, [self.density.view(-1), self.threshold], [self.bitfield]
         )
+        if self.block > 1:
+            f = self.block
+            args = [self.bitfield, self.resolution, f]
+            self._launch(_pack_blocks, self.n_cells // f**3, args, [self.blocks])
 
     # -- queries ----------------------------------------------------------------------------
     def cell_points(self, ids: torch.Tensor, seed: int | None = None) -> torch.Tensor:
@@ -483,5 +542,6 @@ class OccupancyGrid:
         self.density = self.density.to(self.device)
         self._valid_cache = None
         self.bitfield = self.bitfield.to(self.device)
+        self.blocks = self.blocks.to(self.device)
         self.threshold = self.threshold.to(self.device)
         return self

@@ -233,3 +233,39 @@ def test_occupied_lookup_matches_reference():
     # the faces of the outermost cascade are inside (last cell), beyond is empty
     on_face = g.occupied(torch.tensor([[1.0 + 4.0, 0.0, -4.0], [5.001, 0.0, 0.0]]))
     assert bool(on_face[0]) == bool(b[2, 7, 4, 0]) and not on_face[1]
+
+
+@pytest.mark.parametrize(
+    "res,C,f", [(128, 1, 8), (128, 4, 8), (32, 2, 8), (16, 2, 4), (8, 1, 4), (8, 2, 2), (4, 2, 1)]
+)
+def test_block_factor_keeps_blocks_inside_one_cascade_ring(res, C, f):
+    from fastenerf.kernels.occupancy import block_factor
+
+    assert block_factor(res, C) == f
+    assert (res // 4 if C > 1 else res) % f == 0 and (f == 1 or res // f >= 2)
+
+
+@pytest.mark.parametrize("res,C,f", [(16, 2, None), (8, 1, None), (16, 1, 2), (32, 2, 8)])
+def test_blocks_are_any_of_their_cells(res, C, f):
+    gen = torch.Generator().manual_seed(3)
+    g = OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=res, n_cascades=C, block=f)
+    f = g.block
+    assert f > 1
+    sd = g.state_dict()
+    # sparse: most blocks empty, some with a single occupied cell
+    sd["density"] = (torch.rand(C, res**3, generator=gen) < 2.0 / f**3).float()
+    sd["threshold"] = torch.tensor([0.5])
+    g.load_state_dict(sd)
+    b = res // f
+    want = g.binary.view(C, b, f, b, f, b, f).any(6).any(4).any(2).reshape(-1)
+    assert torch.equal(g.blocks.bool(), want)
+    assert 0 < want.sum() < want.numel()  # both kinds of block present
+
+
+def test_block_must_divide_the_resolution():
+    with pytest.raises(ValueError, match="block must divide"):
+        OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=16, n_cascades=2, block=8)
+    with pytest.raises(ValueError, match="block must divide"):
+        OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=12, block=8)
+    g = OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=12, block=1)
+    assert g.block == 1 and g.blocks.numel() == 1

@@ -415,3 +415,56 @@ def test_every_output_element_is_written(monkeypatch):
         assert torch.equal(x, y)
     for x, y in zip(ray_aabb(o, d, box), clean_aabb, strict=True):
         assert torch.equal(x, y)
+
+
+@pytest.mark.parametrize("C,res,cone,jit", [(2, 32, 0.0, False), (2, 16, 0.02, True)])
+def test_empty_blocks_are_jumped_without_losing_a_sample(C, res, cone, jit):
+    """A sparse grid (two blobs in mostly empty blocks): jumping empty blocks gives the dense
+    reference's samples and the same output as marching cell by cell (block = 1)."""
+    _, gen = _seed()
+    grids = []
+    for block in (None, 1):
+        g = OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=res, n_cascades=C, block=block)
+        sd = g.state_dict()
+        x = (torch.arange(res) + 0.5) / res * 2 - 1
+        p = torch.stack(torch.meshgrid(x, x, x, indexing="ij"), -1).view(-1, 3)
+        dens = [(p - 0.3).norm(dim=-1) < 0.2, (p + 0.35).norm(dim=-1) < 0.12]
+        outer = [((2 * p - torch.tensor([0.9, -0.5, 0.1])).norm(dim=-1) < 0.3)] * (C - 1)
+        sd["density"] = torch.stack([dens[0] | dens[1], *outer]).float()
+        sd["threshold"] = torch.tensor([0.5])
+        g.load_state_dict(sd)
+        grids.append(g)
+    g, g1 = grids
+    assert g.block > 1 and g1.block == 1
+    assert (g.blocks == 0).float().mean() > 0.5  # the jump is exercised
+    R = 150
+    o, d = _rays(R, gen)
+    aim = torch.tensor([[0.3] * 3, [-0.35] * 3])[torch.arange(R) % 2]  # half at each blob
+    d = torch.nn.functional.normalize(aim + 0.15 * torch.randn(R, 3, generator=gen) - o, dim=-1)
+    jitter = torch.rand(R, generator=gen) if jit else None
+    box = [-4.0, -4.0, -4.0, 4.0, 4.0, 4.0]
+    dt = (0.01, 0.04) if cone else (None, None)
+    out = march_rays(o, d, box, g, 0.0, None, cone, dt[0], dt[1], 10**6, jitter)
+    dt_min = dt[0] or g.step_size
+    n = check_against_reference(
+        out,
+        o,
+        d,
+        box,
+        g,
+        g.binary.numpy(),
+        0.0,
+        math.inf,
+        cone,
+        dt_min,
+        dt[1] or dt_min,
+        None if jitter is None else jitter.numpy(),
+        10**6,
+    )
+    assert n > 500
+    cellwise = march_rays(o, d, box, g1, 0.0, None, cone, dt[0], dt[1], 10**6, jitter)
+    same = (out[0][:, 1] == cellwise[0][:, 1]).float().mean()
+    assert same >= 0.98, f"{same:.3f} of rays have the cell-by-cell march's count"
+    split = march_rays(o, d, box, g, 0.0, None, cone, dt[0], dt[1], 10**6, jitter, segments=3)
+    for x, y in zip(out, split, strict=True):
+        assert torch.equal(x, y)
