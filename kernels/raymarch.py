@@ -1,21 +1,12 @@
 """Ray–AABB intersection and occupancy-guided ray marching into packed samples.
 
-Step rule. Samples partition the ray's range [t0, t1] (box entry clamped to `near`, box exit
-clamped to `far`) into intervals whose length follows instant-ngp's cone rule
-``dt = clamp(t * cone_angle, dt_min, dt_max)``. To make the rule skippable, the lattice is
-defined by a warped coordinate u(t) with du/dt = 1/dt(t):
-
-    t < dt_min/cone                 : u grows by 1 every dt_min      (constant steps)
-    dt_min/cone <= t < dt_max/cone  : t grows by (1 + cone) per unit u (dt = cone·t)
-    t >= dt_max/cone                : u grows by 1 every dt_max      (constant steps)
-
-Interval k of a ray spans u in [k + j - 1, k + j] (j = the ray's jitter in [0, 1), 0 without)
-clipped to [t0, t1]; its step is exactly clamp(t_k·cone, dt_min, dt_max) except the one step
-that straddles a phase change. A candidate interval is kept when the cell holding its midpoint
-is occupied (and, with a cylinder clip, the midpoint lies in the cylinder). Because the lattice
-is a closed form of k, an empty cell is skipped in O(1): the march jumps to the first interval
-whose midpoint is past the cell's exit, so the result equals dense stepping over every interval
-(tests check exactly that) while touching only occupied cells.
+Samples are the intervals of a lattice along each ray (lattice.py: instant-ngp's cone rule
+dt = clamp(t * cone_angle, dt_min, dt_max), in closed form). A candidate interval is kept when
+the cell holding its midpoint is occupied (and, with a cylinder clip, the midpoint lies in the
+cylinder). The march jumps over an empty cell (or an empty block of cells) in O(1), to the first
+interval whose midpoint is past its exit, and takes an occupied cell's further samples as one
+run up to the first midpoint past its exit; so the result equals dense stepping over every
+interval (tests check exactly that) while touching only occupied cells.
 
 Output (nerfacc's packed convention): packed_info (R, 2) int32 (first sample, count),
 t_starts/t_ends (S,) float32 world units along the unit direction, ray_indices (S,) int32.
@@ -38,6 +29,7 @@ import torch
 import warp as wp
 
 from .common import as_float32, fast_view, init, launch
+from .lattice import StepRule, lattice_point, make_lattice, run_end, step_rule, u_of
 from .occupancy import (
     OccupancyGrid,
     bit_at,
@@ -51,6 +43,7 @@ from .occupancy import (
 
 _empty = torch.empty
 
+RUNS = True  # an occupied cell's samples as one run (False: one test per sample)
 _PARALLEL = 1e-12  # |d_k| below this: the ray is parallel to the slab (avoids 0 * inf = NaN)
 
 
@@ -99,78 +92,6 @@ def _ray_aabb(
         t_far[r] = wp.inf
 
 
-@wp.struct
-class StepRule:
-    """dt = clamp(t * cone, a, b); L = log1p(cone); t1p = a / cone, t2p = b / cone; the
-    reciprocals spare the loop its divisions."""
-
-    a: float
-    b: float
-    L: float
-    inv_a: float
-    inv_b: float
-    inv_L: float
-    t1p: float
-    t2p: float
-
-
-@wp.struct
-class Lattice:
-    """One ray's lattice: phase boundaries of the step rule in t (x1, x2) and in u (u1, u2),
-    measured from the ray's start t0; jm1 = jitter - 1. Precomputed once per ray so that a
-    lattice point costs one compare and one fma (phase 2: an exp)."""
-
-    t0: float
-    jm1: float
-    u1: float
-    u2: float
-    x1: float
-    x2: float
-
-
-@wp.func
-def make_lattice(rule: StepRule, t0: float, jm1: float) -> Lattice:
-    lat = Lattice()
-    lat.t0 = t0
-    lat.jm1 = jm1
-    lat.x1 = wp.max(t0, rule.t1p)
-    lat.u1 = (lat.x1 - t0) * rule.inv_a
-    lat.x2 = wp.max(lat.x1, rule.t2p)
-    lat.u2 = lat.u1
-    if lat.x1 < lat.x2:
-        lat.u2 = lat.u1 + wp.log(lat.x2 / lat.x1) * rule.inv_L
-    return lat
-
-
-@wp.func
-def u_of(rule: StepRule, lat: Lattice, t: float) -> float:
-    """Warped distance u from the ray's t0 to t >= t0, in steps (see module docstring)."""
-    if t <= lat.x1:
-        return (t - lat.t0) * rule.inv_a
-    if t <= lat.x2:
-        return lat.u1 + wp.log(t / lat.x1) * rule.inv_L
-    return lat.u2 + (t - lat.x2) * rule.inv_b
-
-
-@wp.func
-def t_of(rule: StepRule, lat: Lattice, u: float) -> float:
-    """Inverse of u_of: the t that lies u steps past t0 (t0 for u <= 0)."""
-    if u <= 0.0:
-        return lat.t0
-    if u <= lat.u1:
-        return lat.t0 + u * rule.a
-    if u <= lat.u2:
-        return lat.x1 * wp.exp((u - lat.u1) * rule.L)
-    return lat.x2 + (u - lat.u2) * rule.b
-
-
-@wp.func
-def lattice_point(rule: StepRule, lat: Lattice, m: int) -> float:
-    """Lattice point m of a ray, t(m + j - 1); interval k is [P(k), P(k + 1)] clipped to
-    [t0, t1]. One expression for every use, so neighbours share their end exactly."""
-    return t_of(rule, lat, float(m) + lat.jm1)
-
-
 @wp.func
 def safe_inverse(d: wp.vec3) -> wp.vec3:
     """1 / d per axis, 0 where the ray is parallel to the axis' slabs."""
@@ -194,7 +115,7 @@ def cell_exit(o: wp.vec3, d: wp.vec3, inv_d: wp.vec3, lo: wp.vec3, hi: wp.vec3) 
 
 
 @functools.cache
-def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1):
+def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = True):
     """Marcher specialised to the grid: `n_cascades` = 0 means no grid (all occupied); the
     cylinder test is compiled in only when the scene has one; `block` > 1: an empty cell in an
     empty block of block**3 cells skips the whole block.
@@ -312,6 +233,24 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1):
                             t_ends[base + n] = tb
                             ray_indices[base + n] = r
                         n += 1
+                        if wp.static(runs and not cylinder):
+                            # The cell's further samples in one run (their midpoints lie before
+                            # its exit): counted at once, written without a test each.
+                            end = occ_until
+                            if wp.static(n_cascades == 0):
+                                end = wp.float32(1.0e30)
+                            kk = run_end(rule, lat, k, k_hi, t1, end)
+                            m = wp.min(kk - k - 1, limit - n)
+                            if write != 0:
+                                t = tb_raw
+                                for i in range(m):
+                                    t_next = lattice_point(rule, lat, k + 2 + i)
+                                    t_starts[base + n + i] = t
+                                    t_ends[base + n + i] = wp.min(t_next, t1)
+                                    ray_indices[base + n + i] = r
+                                    t = t_next
+                            n += m
+                            step = kk - k
             k += step
             if step == 1:
                 ta = tb_raw
@@ -379,28 +318,6 @@ def ray_aabb(
     return t_near, t_far
 
 
-@functools.lru_cache(maxsize=64)
-def step_rule(cone_angle: float, dt_min: float, dt_max: float) -> StepRule:
-    """The Warp struct for dt = clamp(t * cone_angle, dt_min, dt_max) (cached: do not mutate)."""
-    if not (dt_min > 0 and dt_max >= dt_min and cone_angle >= 0):
-        raise ValueError(
-            f"need dt_min > 0, dt_max >= dt_min, cone_angle >= 0; got {dt_min}, {dt_max}, "
-            f"{cone_angle}"
-        )
-    rule = StepRule()
-    rule.a = float(dt_min)
-    rule.b = float(dt_max)
-    if cone_angle > 0:
-        rule.L = math.log1p(cone_angle)
-        rule.t1p = dt_min / cone_angle
-        rule.t2p = dt_max / cone_angle
-    else:
-        rule.L = 1.0
-        rule.t1p = rule.t2p = 1e30
-    rule.inv_a, rule.inv_b, rule.inv_L = 1.0 / rule.a, 1.0 / rule.b, 1.0 / rule.L
-    return rule
-
-
 class MarchPlan(NamedTuple):
     """A march's compiled kernel, its leading launch arguments and its sizes."""
 
@@ -442,11 +359,11 @@ def plan_march(
         if jitter.shape != (R,):
             raise ValueError(f"jitter must be ({R},), got {tuple(jitter.shape)}")
     if grid is not None:
-        kernel = _march_kernel(grid.n_cascades, grid.cylinder is not None, grid.block)
+        kernel = _march_kernel(grid.n_cascades, grid.cylinder is not None, grid.block, RUNS)
         geom = [grid.center, grid.half, grid.inv_half, grid.resolution, grid.bitfield, grid.blocks]
         cyl = wp.vec3(*grid.cylinder) if grid.cylinder is not None else wp.vec3(0.0)
     else:
-        kernel = _march_kernel(0, False)
+        kernel = _march_kernel(0, False, 1, RUNS)
         geom = [wp.vec3(0.0), wp.vec3(1.0), wp.vec3(1.0), 2, *[_dummy(dev, torch.uint8)] * 2]
         cyl = wp.vec3(0.0)
     if segments is None:

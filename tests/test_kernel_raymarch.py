@@ -461,10 +461,42 @@ def test_empty_blocks_are_jumped_without_losing_a_sample(C, res, cone, jit):
         None if jitter is None else jitter.numpy(),
         10**6,
     )
-    assert n > 500
+    assert n > 200
     cellwise = march_rays(o, d, box, g1, 0.0, None, cone, dt[0], dt[1], 10**6, jitter)
     same = (out[0][:, 1] == cellwise[0][:, 1]).float().mean()
     assert same >= 0.98, f"{same:.3f} of rays have the cell-by-cell march's count"
     split = march_rays(o, d, box, g, 0.0, None, cone, dt[0], dt[1], 10**6, jitter, segments=3)
     for x, y in zip(out, split, strict=True):
+        assert torch.equal(x, y)
+
+
+@pytest.mark.parametrize("cap,segments,jit", [(10**6, None, True), (9, 3, False)])
+def test_runs_and_blocks_change_no_sample(monkeypatch, cap, segments, jit):
+    """An occupied cell's samples taken as one run, and empty blocks jumped in one step, give
+    the per-sample, cell-by-cell march bit for bit (two cascades, all three step phases)."""
+    _, gen = _seed()
+    res, C = 16, 2
+    grids = []
+    for block in (None, 1):
+        g = OccupancyGrid([-1, -1, -1, 1, 1, 1], resolution=res, n_cascades=C, block=block)
+        sd = g.state_dict()
+        sd["density"] = (torch.rand(C, res**3, generator=gen.manual_seed(5)) < 0.05).float()
+        sd["threshold"] = torch.tensor([0.5])
+        g.load_state_dict(sd)
+        grids.append(g)
+    assert grids[0].block > 1 and (grids[0].blocks == 0).any()
+    o, d = _rays(200, gen)
+    jitter = torch.rand(200, generator=gen) if jit else None
+    box = [-4.0] * 3 + [4.0] * 3
+    outs = []
+    for runs, g in ((False, grids[1]), (True, grids[1]), (True, grids[0]), (True, None)):
+        monkeypatch.setattr(rm, "RUNS", runs)
+        outs.append(march_rays(o, d, box, g, 0.05, None, 0.02, 0.01, 0.08, cap, jitter, segments))
+    assert outs[0][1].numel() > 100
+    for out in outs[1:3]:
+        for x, y in zip(out, outs[0], strict=True):
+            assert torch.equal(x, y)
+    monkeypatch.setattr(rm, "RUNS", False)
+    dense = march_rays(o, d, box, None, 0.05, None, 0.02, 0.01, 0.08, cap, jitter, segments)
+    for x, y in zip(outs[3], dense, strict=True):
         assert torch.equal(x, y)
