@@ -3,9 +3,9 @@
 `Trainer` builds what a run needs and takes one optimisation step at a time; `Trainer.run`
 is THE loop, and everything around the steps (evaluation, logging, progress, checkpoints,
 stopping) is a hook (`fastenerf.hooks`). The run folder's files are `fastenerf.run`'s; the
-checkpoint's contents are `fastenerf.train_state`'s. A resumed run takes the same next steps
-as one that never stopped (bit-identical on CPU). Training time excludes evaluation and
-checkpoint time; both are recorded.
+checkpoint's contents are `fastenerf.train_state`'s, config.json's `fastenerf.run_config`'s.
+A resumed run takes the same next steps as one that never stopped (bit-identical on CPU).
+Training time excludes evaluation and checkpoint time; both are recorded.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch.profiler import record_function
 
-from . import train_state
+from . import run_config, train_state
 from .config import TrainConfig
 from .data.events import EventIndex
 from .data.formats.native import Scene
@@ -30,7 +30,6 @@ from .errors import InputError
 from .fields import Field, make_field
 from .graph_step import graphed_step
 from .hooks import Hook, default_hooks
-from .io import write_json
 from .losses import total_loss
 from .memory import check_ray_batch
 from .optim import field_adam, lr_as_floats, set_lr
@@ -42,7 +41,6 @@ from .run import (
     resolve_device,
     save_checkpoint,
     scene_background,
-    scene_fingerprint,
     write_progress,
 )
 from .sampling import RaySampler, WindowSampler
@@ -257,44 +255,9 @@ class Trainer:
         w = self.cfg.windows_per_step
         return 2 * w * max(1, self.cfg.rays_per_step // w)
 
-    def built(self) -> dict[str, Any]:
-        """The parts this scene switched on (saved in config.json)."""
-        sc = self.scene.config
-        return {
-            "bayer": sc.bayer,
-            "mono_luminance": sc.bayer is None,
-            "distortion": self.rig.intrinsics.distorted,
-            "cylinder": sc.cylinder is not None,
-            "background": self.background is not None,
-            "loop_wrap": sc.loop,
-            "distortion_loss": self.cfg.distortion_weight > 0,
-            "event_targets": self.sampler.target_backend,
-            "amp": "bf16" if self.amp else "off",
-            "device": str(self.device),
-            "pose_smoothing": self.cfg.smooth_poses > 0,
-            "pose_refinement": self.cfg.refine_poses,
-            "threshold_estimation": self.cfg.estimate_threshold,
-            **self.field.built(),
-        }
-
     def write_config(self) -> Path:
-        from . import __version__
-
-        return write_json(
-            self.out_dir / "config.json",
-            {
-                "train": self.cfg.to_dict(),
-                "scene": self.scene.config.to_dict(),
-                "scene_dir": str(Path(self.scene.root).resolve()),
-                "scene_fingerprint": scene_fingerprint(self.scene),
-                "field": self.field.config_dict(),
-                "built": self.built(),
-                "perturbation": self.perturbation,
-                "pose_smoothing": self.smoothing,
-                "self_calibration": None if self.selfcal is None else self.selfcal.report(),
-                "versions": {"torch": torch.__version__, "fastenerf": __version__},
-            },
-        )
+        """Write RUN/config.json (`run_config`: options, scene, what was built)."""
+        return run_config.write_config(self)
 
     # -- one step ----------------------------------------------------------------------------
 
