@@ -1,5 +1,5 @@
-"""`fastenerf bench error-vs-time|knobs|kernels|step-time|study|toyset ...`: run a benchmark of
-the repo's benchmarks/ folder.
+"""`fastenerf bench error-vs-time|knobs|kernels|step-time|study|toyset|prior-residual ...`: run a
+benchmark of the repo's benchmarks/ folder.
 
 The benchmarks are a plain folder at the repository root (not installed with the package); this
 command finds it beside the package when it is not importable, and hands the remaining
@@ -17,7 +17,8 @@ from pathlib import Path
 HELP = (
     "benchmarks: error against training time (ngp vs vanilla), ngp accuracy knobs, kernels, "
     "step time of option variants, robustness studies (pose error, mount error, noise, "
-    "ablation), the mesh scene defaults are measured on (toyset)"
+    "ablation), the mesh scene defaults are measured on (toyset), the pose error the motion "
+    "prior leaves (prior-residual)"
 )
 
 BENCHMARKS = {
@@ -27,6 +28,7 @@ BENCHMARKS = {
     "step-time": "benchmarks.step_time",
     "study": "benchmarks.study",
     "toyset": "benchmarks.toyset",
+    "prior-residual": "benchmarks.prior_residual",
 }
 
 
