@@ -55,6 +55,7 @@ class Lattice:
 
 @wp.func
 def make_lattice(rule: StepRule, t0: float, jm1: float) -> Lattice:
+    """The lattice of a ray that starts at t0 with jitter jm1 + 1 (phase boundaries in t, u)."""
     lat = Lattice()
     lat.t0 = t0
     lat.jm1 = jm1
@@ -109,9 +110,10 @@ def in_run(rule: StepRule, lat: Lattice, k: int, t1: float, end: float) -> bool:
 def run_end(rule: StepRule, lat: Lattice, k: int, k_hi: int, t1: float, end: float) -> int:
     """The first interval after k that is not `in_run` (at most k_hi): every interval from k + 1
     up to it has its midpoint before `end`. A closed-form guess from u(min(end, t1)), then
-    corrected by the predicate itself, so it equals stepping interval by interval."""
-    m = u_of(rule, lat, wp.min(end, t1)) - lat.jm1
-    kk = wp.min(wp.max(k + 1, int(wp.min(m, 1.0e9))), k_hi)
+    corrected by the predicate itself, so it equals stepping interval by interval wherever the
+    lattice points are strictly increasing in float32 (the march takes runs only there)."""
+    u_end = u_of(rule, lat, wp.min(end, t1)) - lat.jm1
+    kk = wp.min(wp.max(k + 1, int(wp.min(u_end, 1.0e9))), k_hi)
     while kk < k_hi and in_run(rule, lat, kk, t1, end):
         kk += 1
     while kk > k + 1 and not in_run(rule, lat, kk - 1, t1, end):

@@ -6,7 +6,10 @@ the cell holding its midpoint is occupied (and, with a cylinder clip, the midpoi
 cylinder). The march jumps over an empty cell (or an empty block of cells) in O(1), to the first
 interval whose midpoint is past its exit, and takes an occupied cell's further samples as one
 run up to the first midpoint past its exit; so the result equals dense stepping over every
-interval (tests check exactly that) while touching only occupied cells.
+interval (tests check exactly that, up to midpoints within float rounding of a cell face) while
+touching only occupied cells. Runs and block jumps change no sample of the per-sample,
+cell-by-cell march, except a midpoint within float rounding of a block face, which the jump
+may place on the other side.
 
 Output (nerfacc's packed convention): packed_info (R, 2) int32 (first sample, count),
 t_starts/t_ends (S,) float32 world units along the unit direction, ray_indices (S,) int32.
@@ -118,7 +121,9 @@ def cell_exit(o: wp.vec3, d: wp.vec3, inv_d: wp.vec3, lo: wp.vec3, hi: wp.vec3) 
 def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = True):
     """Marcher specialised to the grid: `n_cascades` = 0 means no grid (all occupied); the
     cylinder test is compiled in only when the scene has one; `block` > 1: an empty cell in an
-    empty block of block**3 cells skips the whole block.
+    empty block of block**3 cells skips the whole block; `runs`: an occupied cell's further
+    samples are taken as one run (not with a cylinder, and only on rays whose lattice points
+    are strictly increasing in float32: steps over ~1e-6 of t, under 4e6 intervals).
 
     One thread marches one segment of one ray: segment j of n_seg covers lattice intervals
     [K j / n_seg, K (j + 1) / n_seg) of the ray's K, the last one open-ended. Decisions depend
@@ -179,6 +184,12 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
                 k_hi = (K * (seg + 1)) / n_seg
         inv_d = safe_inverse(d)
         n = wp.int32(0)
+        # runs only where the lattice is strictly increasing in float32 (steps of >= ~8 ulps of
+        # t, fewer than 2^22 intervals): else a run would take the empty intervals that the
+        # per-sample test drops; this also keeps t1 ~ 1e30 (d ~ 0, no far) off the run path
+        run_ok = rule.a * 1048576.0 > wp.max(wp.abs(t0), wp.abs(t1))
+        if run_ok:
+            run_ok = u_of(rule, lat, t1) - jm1 < 4.0e6
         ta = lattice_point(rule, lat, k)
         tb_raw = lattice_point(rule, lat, k + 1)
         # t before which midpoints are known to lie in the current (occupied) cell: saves the
@@ -196,13 +207,17 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
                         c = locate(p, center, inv_half, res)
                         occ = bit_at(bitfield, c, res)
                         size = cell_size(c[0], half, res)
+                        clo = cell_lo(c, center, half, res)
+                        chi = clo + size
                         if wp.static(block > 1):
                             if occ == 0 and c[0] >= 0:
                                 if block_bit(blocks, c, res, block) == 0:
-                                    c = block_corner(c, block)
-                                    size = size * float(block)
-                        clo = cell_lo(c, center, half, res)
-                        B = cell_exit(o, d, inv_d, clo, clo + size)
+                                    # the block's faces as its first / last cells compute theirs
+                                    c0 = block_corner(c, block)
+                                    clo = cell_lo(c0, center, half, res)
+                                    c1 = c0 + wp.vec4i(0, block - 1, block - 1, block - 1)
+                                    chi = cell_lo(c1, center, half, res) + size
+                        B = cell_exit(o, d, inv_d, clo, chi)
                         if occ != 0:
                             occ_until = B
                         else:
@@ -234,23 +249,26 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
                             ray_indices[base + n] = r
                         n += 1
                         if wp.static(runs and not cylinder):
-                            # The cell's further samples in one run (their midpoints lie before
-                            # its exit): counted at once, written without a test each.
-                            end = occ_until
-                            if wp.static(n_cascades == 0):
-                                end = wp.float32(1.0e30)
-                            kk = run_end(rule, lat, k, k_hi, t1, end)
-                            m = wp.min(kk - k - 1, limit - n)
-                            if write != 0:
-                                t = tb_raw
-                                for i in range(m):
-                                    t_next = lattice_point(rule, lat, k + 2 + i)
-                                    t_starts[base + n + i] = t
-                                    t_ends[base + n + i] = wp.min(t_next, t1)
-                                    ray_indices[base + n + i] = r
-                                    t = t_next
-                            n += m
-                            step = kk - k
+                            if run_ok:
+                                # The cell's further samples in one run (their midpoints lie before
+                                # its exit): counted at once, written without a test each.
+                                end = occ_until
+                                if wp.static(n_cascades == 0):
+                                    end = wp.float32(1.0e30)
+                                # capped at the samples still allowed: bounded work, no int overflow
+                                kk_cap = k + 1 + wp.min(k_hi - k - 1, limit - n)
+                                kk = run_end(rule, lat, k, kk_cap, t1, end)
+                                m = wp.min(kk - k - 1, limit - n)
+                                if write != 0:
+                                    t = tb_raw
+                                    for i in range(m):
+                                        t_next = lattice_point(rule, lat, k + 2 + i)
+                                        t_starts[base + n + i] = t
+                                        t_ends[base + n + i] = wp.min(t_next, t1)
+                                        ray_indices[base + n + i] = r
+                                        t = t_next
+                                n += m
+                                step = kk - k
             k += step
             if step == 1:
                 ta = tb_raw

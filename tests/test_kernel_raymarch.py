@@ -463,8 +463,9 @@ def test_empty_blocks_are_jumped_without_losing_a_sample(C, res, cone, jit):
     )
     assert n > 200
     cellwise = march_rays(o, d, box, g1, 0.0, None, cone, dt[0], dt[1], 10**6, jitter)
-    same = (out[0][:, 1] == cellwise[0][:, 1]).float().mean()
-    assert same >= 0.98, f"{same:.3f} of rays have the cell-by-cell march's count"
+    # equal up to a midpoint within float rounding of a block face, which random rays miss
+    for x, y in zip(out, cellwise, strict=True):
+        assert torch.equal(x, y)
     split = march_rays(o, d, box, g, 0.0, None, cone, dt[0], dt[1], 10**6, jitter, segments=3)
     for x, y in zip(out, split, strict=True):
         assert torch.equal(x, y)
@@ -473,7 +474,8 @@ def test_empty_blocks_are_jumped_without_losing_a_sample(C, res, cone, jit):
 @pytest.mark.parametrize("cap,segments,jit", [(10**6, None, True), (9, 3, False)])
 def test_runs_and_blocks_change_no_sample(monkeypatch, cap, segments, jit):
     """An occupied cell's samples taken as one run, and empty blocks jumped in one step, give
-    the per-sample, cell-by-cell march bit for bit (two cascades, all three step phases)."""
+    the per-sample, cell-by-cell march bit for bit (two cascades, all three step phases; a
+    midpoint within float rounding of a block face aside, which random rays miss)."""
     _, gen = _seed()
     res, C = 16, 2
     grids = []
@@ -500,3 +502,22 @@ def test_runs_and_blocks_change_no_sample(monkeypatch, cap, segments, jit):
     dense = march_rays(o, d, box, None, 0.05, None, 0.02, 0.01, 0.08, cap, jitter, segments)
     for x, y in zip(outs[3], dense, strict=True):
         assert torch.equal(x, y)
+
+
+def test_runs_keep_to_the_per_sample_march_on_degenerate_rays(monkeypatch):
+    """Where float32 cannot tell neighbouring lattice points apart (steps below a few ulps of
+    t) the per-sample march drops the empty intervals and a run must not take them; rays with
+    no direction or an unbounded range (t1 ~ 1e30) must not run to the cap of the lattice."""
+    box = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+    grid = OccupancyGrid(box, resolution=16)
+    far = torch.tensor([[-3000.0, 0.1, 0.2], [0.1, 0.2, 0.3], [0.1, 0.2, 0.3], [0.1, 0.2, 0.3]])
+    d = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2e-12, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    for g, dt in ((None, 1e-4), (grid, 1e-4), (None, 0.01), (grid, 0.01)):
+        outs = []
+        for runs in (False, True):
+            monkeypatch.setattr(rm, "RUNS", runs)
+            outs.append(march_rays(far, d, box, g, 0.0, None, 0.0, dt, dt, 20))
+        for x, y in zip(*outs, strict=True):
+            assert torch.equal(x, y)
+        ts, te = outs[1][1], outs[1][2]
+        assert (te > ts).all()  # no zero-width interval
