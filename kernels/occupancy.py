@@ -61,15 +61,16 @@ def cell_of_id(gid: int, res: int) -> wp.vec4i:
 
 @wp.func
 def cell_size(level: int, half: wp.vec3, res: int) -> wp.vec3:
-    """Edge lengths of a cell of cascade `level`, world units."""
-    return half * (2.0 * float(1 << level) / float(res))
+    """Edge lengths of a cell of cascade `level`, world units (level < 0, outside every
+    cascade: cascade 0's, so a shift is never negative)."""
+    return half * (2.0 * float(1 << wp.max(level, 0)) / float(res))
 
 
 @wp.func
 def cell_lo(c: wp.vec4i, center: wp.vec3, half: wp.vec3, res: int) -> wp.vec3:
     """Minimum corner of cell c = (level, ix, iy, iz), world units."""
     size = cell_size(c[0], half, res)
-    lo = center - half * float(1 << c[0])
+    lo = center - half * float(1 << wp.max(c[0], 0))
     return lo + wp.cw_mul(wp.vec3(float(c[1]), float(c[2]), float(c[3])), size)
 
 
