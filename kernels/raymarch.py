@@ -46,7 +46,10 @@ from .occupancy import (
 
 _empty = torch.empty
 
-RUNS = True  # an occupied cell's samples as one run (False: one test per sample)
+RUNS: bool | str = "auto"
+"""An occupied cell's samples as one run (False: one test per sample); "auto": on CUDA only.
+The run's closed form pays where it spares a GPU's threads their per-sample branches; the CPU
+backend runs a thread's samples one after another, and there it costs more than it saves."""
 _PARALLEL = 1e-12  # |d_k| below this: the ray is parallel to the slab (avoids 0 * inf = NaN)
 
 
@@ -376,12 +379,13 @@ def plan_march(
         jitter = as_float32(jitter, dev)
         if jitter.shape != (R,):
             raise ValueError(f"jitter must be ({R},), got {tuple(jitter.shape)}")
+    runs = bool(RUNS) if RUNS != "auto" else dev.type == "cuda"
     if grid is not None:
-        kernel = _march_kernel(grid.n_cascades, grid.cylinder is not None, grid.block, RUNS)
+        kernel = _march_kernel(grid.n_cascades, grid.cylinder is not None, grid.block, runs)
         geom = [grid.center, grid.half, grid.inv_half, grid.resolution, grid.bitfield, grid.blocks]
         cyl = wp.vec3(*grid.cylinder) if grid.cylinder is not None else wp.vec3(0.0)
     else:
-        kernel = _march_kernel(0, False, 1, RUNS)
+        kernel = _march_kernel(0, False, 1, runs)
         geom = [wp.vec3(0.0), wp.vec3(1.0), wp.vec3(1.0), 2, *[_dummy(dev, torch.uint8)] * 2]
         cyl = wp.vec3(0.0)
     if segments is None:

@@ -18,6 +18,7 @@ import torch
 from fastenerf.kernels import raymarch as rm
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays, ray_aabb
+from fastenerf.kernels.raymarch_fixed import march_rays_fixed
 
 AMBIG = 1e-3  # cells
 
@@ -501,6 +502,15 @@ def test_runs_and_blocks_change_no_sample(monkeypatch, cap, segments, jit):
     monkeypatch.setattr(rm, "RUNS", False)
     dense = march_rays(o, d, box, None, 0.05, None, 0.02, 0.01, 0.08, cap, jitter, segments)
     for x, y in zip(outs[3], dense, strict=True):
+        assert torch.equal(x, y)
+    # the fixed-capacity path, one slot short of fitting (the last ray with samples overflows)
+    args = (o, d, box, grids[0], 0.05, None, 0.02, 0.01, 0.08, cap, jitter, segments)
+    fixed = []
+    for runs in (False, True):
+        monkeypatch.setattr(rm, "RUNS", runs)
+        fixed.append(march_rays_fixed(*args, capacity=outs[0][1].numel() - 1))
+    assert fixed[0].overflow.any()
+    for x, y in zip(*fixed, strict=True):
         assert torch.equal(x, y)
 
 
