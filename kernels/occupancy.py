@@ -177,6 +177,7 @@ def _pack_blocks(
     f: int,
     blocks: wp.array(dtype=wp.uint8),
 ):
+    """blocks[b] = 1 where any of block b's f**3 cells is occupied (a thread per block)."""
     b = wp.tid()
     c = cell_of_id(b, res / f)  # (level, block x, y, z)
     occ = wp.int32(0)
