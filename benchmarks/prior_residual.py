@@ -18,11 +18,23 @@ import math
 from fastenerf.config import PerturbConfig
 from fastenerf.data.formats import load_scene_folder
 from fastenerf.errors import InputError
-from fastenerf.io import write_json
+from fastenerf.io import read_json_object, write_json
+from fastenerf.outputs import OutputKind, claim_output
 from fastenerf.perturb import perturb_training_data, pose_grid_times, rotation_angles_deg
 from fastenerf.pose_smoothing import MIN_WINDOW, smoothed_rig
 
 from .cli import benchmark_main
+
+
+def _is_ours(p) -> bool:
+    try:
+        return "residual_deg" in read_json_object(p)
+    except (InputError, OSError):
+        return False
+
+
+# --json: a file of this benchmark's (replaced), never any other JSON (a scene.json, a run's)
+RESIDUAL_JSON = OutputKind("prior-residual JSON file", False, _is_ours)
 
 
 def residuals(scene, level: float, windows: list[int], order: int) -> dict:
@@ -53,6 +65,8 @@ def _run(a: argparse.Namespace) -> int:
         raise InputError(f"--windows: each must be odd and >= {MIN_WINDOW}, got {bad[0]}")
     if not all(0 <= v <= 180 for v in a.levels):
         raise InputError(f"--levels: degrees in [0, 180], got {a.levels}")
+    if a.json:
+        claim_output(a.json, RESIDUAL_JSON, force=None, flag="--json")  # before any work
     rows, table = [], {}
     head = "| scene | level | given | " + " | ".join(f"window {w}" for w in a.windows) + " |"
     rows += [head, "|" + "---|" * (3 + len(a.windows))]

@@ -29,3 +29,23 @@ def test_table_json_and_bad_input(tiny_scene, tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("prior_residual: error:")
     assert pr.main([str(tmp_path / "missing")]) == 2
+
+
+def test_json_never_replaces_another_file_or_a_folder(tiny_scene, tmp_path, capsys):
+    """--json is checked before any work: a folder or a JSON that is not this benchmark's
+    (a scene.json) is refused with one line and exit 2 and left as it was; its own is replaced."""
+    other = tmp_path / "scene.json"
+    other.write_text((tiny_scene / "scene.json").read_text())
+    before = other.read_bytes()
+    for target in (other, tmp_path):
+        argv = [str(tiny_scene), "--levels", "1", "--windows", "5", "--json", str(target)]
+        assert pr.main(argv) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--json" in err[0]
+    assert other.read_bytes() == before
+    own = tmp_path / "pr.json"
+    for _ in range(2):  # written, then replaced
+        assert (
+            pr.main([str(tiny_scene), "--levels", "1", "--windows", "5", "--json", str(own)]) == 0
+        )
+    assert "residual_deg" in json.loads(own.read_text())
