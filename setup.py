@@ -48,5 +48,5 @@ setup(
         "fast-simplification>=0.1",
     ],
     extras_require={"dev": ["pytest>=7", "ruff>=0.5"]},
-    entry_points={"console_scripts": ["fastenerf=fastenerf.cli:main"]},
+    entry_points={"console_scripts": ["fastenerf=fastenerf.cli:console_main"]},
 )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import warnings
 
@@ -95,5 +96,23 @@ def main(argv: list[str] | None = None) -> int:
         return 130
 
 
+def console_main() -> None:
+    """The `fastenerf` executable (and `python -m fastenerf.cli`): `main`, then exit.
+
+    A torchrun rank that has left its gloo group exits at once (`os._exit`, after flushing),
+    without the interpreter's teardown: there, now and then, a gloo thread still joinable is
+    destroyed and the rank aborts in C++ ("terminate called without an active exception",
+    SIGABRT) after its work is done and written. Every output is on disk by then (written
+    atomically), so nothing the teardown would do is lost."""
+    code = main()
+    from .distributed import left_a_group
+
+    if left_a_group():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    console_main()

@@ -94,6 +94,7 @@ def world_from_env(env: dict[str, str] | None = None) -> World:
 
 
 _joined: World | None = None  # the World `init` joined the group as
+_left = False  # this process destroyed a process group (`left_a_group`)
 
 
 def current_world() -> World:
@@ -149,10 +150,16 @@ def init(
 
 def destroy() -> None:
     """Leave the process group (a no-op when none is up)."""
-    global _joined
+    global _joined, _left
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
+        _left = True
     _joined = None
+
+
+def left_a_group() -> bool:
+    """Whether this process has been in a process group and left it (`destroy`)."""
+    return _left
 
 
 @contextmanager

@@ -302,3 +302,19 @@ def test_two_rank_step_equals_one_process_step_on_the_union_batch(tiny_scene, tm
     # a non-finite loss on one rank: no deadlock, and no rank updates (as one process would not)
     for r in (r0, r1):
         assert r["nan_step"] == {"steps": 2, "skipped_steps": 1, "unchanged": True}
+
+
+def test_a_rank_that_left_its_group_exits_at_once_with_its_code():
+    """console_main after a group was left: os._exit with main's code, output flushed first."""
+    code = (
+        "import sys; from fastenerf import distributed as d; d._left = True; "
+        "sys.argv = ['fastenerf', 'info', '/nonexistent/scene']; "
+        "print('before', flush=False); from fastenerf.cli import console_main; console_main()"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=_env(), capture_output=True, text=True
+    )
+    assert r.returncode == 2
+    assert r.stdout.strip() == "before"  # flushed although os._exit skips the teardown
+    err = [x for x in r.stderr.splitlines() if "Warp CUDA warning" not in x]
+    assert err == ["fastenerf info: error: /nonexistent/scene: no such file or folder"]
