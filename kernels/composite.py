@@ -19,8 +19,7 @@ every output is linear in the weights, so with the per-sample "effective weight 
     dL/dsigma_i = delta_i * (e_i * T_{i+1} - sum_{j>i} e_j w_j)
 
 and the suffix sum is the ray's total (known from the forward outputs) minus the running prefix:
-no per-sample tape is stored beyond the weights and the per-ray outputs forward writes (and,
-in the block layout, each sample's outgoing transmittance, which spares its backward a scan).
+no per-sample tape is stored beyond the weights and the per-ray outputs forward writes.
 
 Two schedules of the same maths (`composite(..., layout=)`): "ray", one thread walks a ray (the
 kernels here; the right shape for the CPU), and "block", 32 threads per ray with tile scans over
@@ -230,9 +229,6 @@ def _launch(layout: str, ray_kernel, block_kernel, R: int, like: torch.Tensor, a
 
 
 class _Composite(torch.autograd.Function):
-    """The block layout's forward also keeps each visited sample's outgoing transmittance
-    (`trans`, (S,) float32) for its backward pass; the per-ray walk recomputes it instead."""
-
     @staticmethod
     def forward(ctx, sigmas, rgbs, t_starts, t_ends, packed_info, background, layout):
         init()
@@ -247,31 +243,31 @@ class _Composite(torch.autograd.Function):
         depth = _empty(R, dtype=torch.float32, device=dev)
         opacity = _empty(R, dtype=torch.float32, device=dev)
         n_used = _empty(R, dtype=torch.int32, device=dev)
-        args = [
+        _launch(
+            layout,
+            _composite_fwd,
+            composite_fwd_block,
+            R,
             sigmas,
-            fast_view(rgbs, wp.vec3),
-            t_starts,
-            t_ends,
-            fast_view(packed_info, wp.vec2i),
-            fast_view(bg, wp.vec3),
-            int(bg.shape[0] > 1),
-            T_MIN,
-            weights,
-            fast_view(rgb, wp.vec3),
-            depth,
-            opacity,
-            n_used,
-        ]
-        # only visited samples are written and read back, so no zeroing
-        trans = _empty(S if layout == "block" else 0, dtype=torch.float32, device=dev)
-        if layout == "block":
-            launch_tiled(composite_fwd_block, R, BLOCK_DIM, sigmas, args + [trans])
-        else:
-            launch(_composite_fwd, R, sigmas, args)
+            [
+                sigmas,
+                fast_view(rgbs, wp.vec3),
+                t_starts,
+                t_ends,
+                fast_view(packed_info, wp.vec2i),
+                fast_view(bg, wp.vec3),
+                int(bg.shape[0] > 1),
+                T_MIN,
+                weights,
+                fast_view(rgb, wp.vec3),
+                depth,
+                opacity,
+                n_used,
+            ],
+        )
         ctx.save_for_backward(
             sigmas, rgbs, t_starts, t_ends, packed_info, bg, n_used, weights, rgb, depth, opacity
         )
-        ctx.trans = trans  # not an output: kept off the autograd graph's saved tensors
         return rgb, depth, opacity, weights
 
     @staticmethod
@@ -294,8 +290,7 @@ class _Composite(torch.autograd.Function):
                 R,
                 sigmas,
                 [
-                    # the block kernel reads forward's transmittance where the walk reads sigma
-                    ctx.trans if ctx.layout == "block" else sigmas,
+                    sigmas,
                     fast_view(rgbs, wp.vec3),
                     t_starts,
                     t_ends,

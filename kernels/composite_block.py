@@ -29,12 +29,10 @@ the per-ray kernel only for samples whose T_k lies that close to t_min: n_used t
 those samples (usually one), whose weights (each below t_min * alpha_k) one layout keeps and the
 other drops. The tests draw cases away from that edge; everywhere else n_used is the same.
 
-Forward also writes each visited sample's outgoing transmittance T_{k+1} = T_k exp(-tau_k)
-(`trans`, one float per sample), so the backward pass needs no scan of the optical depths: per
-chunk of the ray's n_used samples it reads w_k and T_{k+1} as forward computed them, forms e_k as
-in `composite.py`, and the prefix sum of e_j w_j up to and including lane k by an inclusive tile
-scan plus the carry from the earlier chunks, so dL/dsigma_k = delta_k (e_k T_{k+1} -
-(total - prefix_k)). It reads no densities.
+Backward, per chunk of the ray's n_used samples: T_k and w_k are recomputed by the same scan as
+in the forward pass (bit-identical weights), e_k as in `composite.py`, and the prefix sum of
+e_j w_j up to and including lane k by an inclusive tile scan plus the carry from the earlier
+chunks, so dL/dsigma_k = delta_k (e_k T_{k+1} - (total - prefix_k)).
 """
 
 from __future__ import annotations
@@ -83,12 +81,10 @@ def composite_fwd_block(
     out_depth: wp.array(dtype=float),
     out_opacity: wp.array(dtype=float),
     n_used: wp.array(dtype=wp.int32),
-    trans: wp.array(dtype=float),
 ):
     """Launched over (R, B): block r composites ray r; `weights` arrives zeroed, so only the
-    visited samples are written; `trans[s]` (outgoing transmittance) is written for the visited
-    samples only. Every tile op is reached by all lanes (the loop's trip count and its break
-    depend on block-uniform values only)."""
+    visited samples are written. Every tile op is reached by all lanes (the loop's trip count
+    and its break depend on block-uniform values only)."""
     r, lane = wp.tid()
     nb = wp.block_dim()
     start = packed_info[r][0]
@@ -102,7 +98,6 @@ def composite_fwd_block(
         s = start + i
         t0, t1, tau = lane_sample(sigmas, t_starts, t_ends, s, i < n)
         T_in = T * wp.exp(-wp.untile(wp.tile_scan_exclusive(wp.tile(tau))))
-        T_out = T_in * wp.exp(-tau)
         key = nb
         if i >= n or not (T_in >= t_min):  # NaN stops too, as in the per-ray walk
             key = lane
@@ -110,13 +105,12 @@ def composite_fwd_block(
         if lane < stop:
             w = T_in * one_minus_exp_neg(tau)
             weights[s] = w
-            trans[s] = T_out
             c = w * rgbs[s]
             acc += _vec5(c[0], c[1], c[2], w * 0.5 * (t0 + t1), w)
         if stop < nb:
             used = chunk + stop
             break
-        T = wp.tile_extract(wp.tile(T_out), nb - 1)
+        T = wp.tile_extract(wp.tile(T_in * wp.exp(-tau)), nb - 1)
         chunk += nb
         used = chunk
     tot = wp.tile_extract(wp.tile_sum(wp.tile(acc, preserve_type=True)), 0)
@@ -136,7 +130,7 @@ def composite_bwd_block_kernel(
 
     @wp.kernel(enable_backward=False, module="unique")
     def composite_bwd_block(
-        trans: wp.array(dtype=float),
+        sigmas: wp.array(dtype=float),
         rgbs: wp.array(dtype=wp.vec3),
         t_starts: wp.array(dtype=float),
         t_ends: wp.array(dtype=float),
@@ -155,8 +149,8 @@ def composite_bwd_block_kernel(
         grad_sigmas: wp.array(dtype=float),
         grad_rgbs: wp.array(dtype=wp.vec3),
     ):
-        """Launched over (R, B); `trans` and `weights` are forward's; gradients arrive zeroed
-        and only the n_used[r] visited samples of ray r are written."""
+        """Launched over (R, B); gradients arrive zeroed and only the n_used[r] visited
+        samples of ray r are written."""
         r, lane = wp.tid()
         nb = wp.block_dim()
         start = packed_info[r][0]
@@ -180,27 +174,33 @@ def composite_bwd_block_kernel(
             for j in range(lane, used, nb):
                 part += g_weights[start + j] * weights[start + j]
             total += wp.tile_extract(wp.tile_sum(wp.tile(part)), 0)
+        T = wp.float32(1.0)
         prefix = wp.float32(0.0)  # sum of e_j w_j over the earlier chunks
         for chunk in range(0, used, nb):
             i = chunk + lane
             s = start + i
+            t0, t1, tau = lane_sample(sigmas, t_starts, t_ends, s, i < used)
+            # the forward pass's scan on the same lanes: the same T_in and w, bit for bit
+            T_in = T * wp.exp(-wp.untile(wp.tile_scan_exclusive(wp.tile(tau))))
+            w = T_in * one_minus_exp_neg(tau)
             e = go
             ew = wp.float32(0.0)
             if i < used:
-                w = weights[s]
                 if wp.static(has_rgb):
                     e += wp.dot(gc, rgbs[s] - b)
                     grad_rgbs[s] = w * gc
                 if wp.static(has_depth):
-                    e += gd * 0.5 * (t_starts[s] + t_ends[s])
+                    e += gd * 0.5 * (t0 + t1)
                 if wp.static(has_weights):
                     e += g_weights[s]
                 ew = e * w
-            scan = wp.tile_scan_inclusive(wp.tile(ew))
-            incl = prefix + wp.untile(scan)
+            incl = prefix + wp.untile(wp.tile_scan_inclusive(wp.tile(ew)))
+            T_out = T_in * wp.exp(-tau)
             if i < used:
-                delta = wp.max(t_ends[s] - t_starts[s], 0.0)
-                grad_sigmas[s] = delta * (e * trans[s] - (total - incl))
-            prefix = prefix + wp.tile_extract(scan, nb - 1)
+                delta = wp.max(t1 - t0, 0.0)
+                grad_sigmas[s] = delta * (e * T_out - (total - incl))
+            carry = wp.tile_extract(wp.tile(wp.vec2(T_out, incl), preserve_type=True), nb - 1)
+            T = carry[0]
+            prefix = carry[1]
 
     return composite_bwd_block
