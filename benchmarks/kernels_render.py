@@ -47,13 +47,16 @@ def _time_ms(fn, device: str, repeats: int, warmup: int = 3, inner: int = 1) -> 
 # Plain-PyTorch versions of the same ops
 
 
-def torch_composite(sigmas, rgbs, t_starts, t_ends, packed_info, background=None):
-    """Compositing over packed samples with dense cumprod and segment sums (autograd)."""
+def torch_composite(sigmas, rgbs, t_starts, t_ends, packed_info, background=None, n_max=None):
+    """Compositing over packed samples with dense cumprod and segment sums (autograd).
+    `n_max`: the largest sample count of a ray, if known (else read from the device: a host
+    sync, which a CUDA graph cannot capture)."""
     R = packed_info.shape[0]
     counts = packed_info[:, 1].long()
-    ray = torch.repeat_interleave(torch.arange(R, device=sigmas.device), counts)
-    pos = torch.arange(ray.numel(), device=sigmas.device) - packed_info[:, 0].long()[ray]
-    N = int(counts.max()) if R else 0
+    S = sigmas.shape[0]
+    ray = torch.repeat_interleave(torch.arange(R, device=sigmas.device), counts, output_size=S)
+    pos = torch.arange(S, device=sigmas.device) - packed_info[:, 0].long()[ray]
+    N = n_max if n_max is not None else (int(counts.max()) if R else 0)
     tau = sigmas * (t_ends - t_starts).clamp_min(0)
     trans = torch.ones(R, N + 1, dtype=sigmas.dtype, device=sigmas.device)
     trans = trans.index_put((ray, pos + 1), torch.exp(-tau))
@@ -192,6 +195,35 @@ def bench_composite(device="cuda", n_rays=2**16, mean_samples=64, repeats=20) ->
     if str(device).startswith("cuda"):
         for L in ("ray", "block"):
             r.update(_composite_cuda_checks(L, sig, rgbs, t_s, t_e, packed, bg, g_rgb))
+        r.update(_graph_fwdbwd_ms(sig, rgbs, t_s, t_e, packed, bg, g_rgb, repeats))
+    return r
+
+
+def _graph_fwdbwd_ms(sig, rgbs, t_s, t_e, packed, bg, g_rgb, repeats) -> dict:
+    """CUDA only: forward+backward of each layout and of plain PyTorch, each captured once into
+    a CUDA graph and replayed, so the time is the device's alone, without the host's Python,
+    autograd and launches (the training step is replayed from a graph too; the eager timings
+    above are host-bound where the kernels are short). `{name}_fwdbwd_graph_ms` for ray, block
+    and torch, `speedup_{L}_fwdbwd_graph`; `{name}_graph_time_error` where a capture failed."""
+    fns = {L: functools.partial(composite, layout=L) for L in ("ray", "block")}
+    fns["torch"] = functools.partial(torch_composite, n_max=int(packed[:, 1].max()))
+    r: dict = {}
+    for name, fn in fns.items():
+        s, c = sig.clone().requires_grad_(), rgbs.clone().requires_grad_()
+
+        def step(fn=fn, s=s, c=c):
+            out = fn(s, c, t_s, t_e, packed, background=bg)
+            return torch.autograd.grad((out["rgb"] * g_rgb).sum() + out["depth"].sum(), (s, c))
+
+        try:
+            graph, _ = _captured(step)
+            r[f"{name}_fwdbwd_graph_ms"] = _time_ms(graph.replay, "cuda", repeats)
+        except Exception as e:  # report, do not hide the other timings
+            r[f"{name}_graph_time_error"] = f"{type(e).__name__}: {e}".splitlines()[0]
+        del step
+    for L in ("ray", "block"):
+        if f"{L}_fwdbwd_graph_ms" in r and "torch_fwdbwd_graph_ms" in r:
+            r[f"speedup_{L}_fwdbwd_graph"] = r["torch_fwdbwd_graph_ms"] / r[f"{L}_fwdbwd_graph_ms"]
     return r
 
 
