@@ -48,7 +48,7 @@ def _time_ms(fn, device: str, repeats: int, warmup: int = 3, inner: int = 1) -> 
 
 
 def torch_composite(sigmas, rgbs, t_starts, t_ends, packed_info, background=None, n_max=None):
-    """Compositing over packed samples with dense cumprod and segment sums (autograd).
+    """Compositing over packed samples with a dense cumulative sum and segment sums (autograd).
     `n_max`: the largest sample count of a ray, if known (else read from the device: a host
     sync, which a CUDA graph cannot capture)."""
     R = packed_info.shape[0]
@@ -58,9 +58,11 @@ def torch_composite(sigmas, rgbs, t_starts, t_ends, packed_info, background=None
     pos = torch.arange(S, device=sigmas.device) - packed_info[:, 0].long()[ray]
     N = n_max if n_max is not None else (int(counts.max()) if R else 0)
     tau = sigmas * (t_ends - t_starts).clamp_min(0)
-    trans = torch.ones(R, N + 1, dtype=sigmas.dtype, device=sigmas.device)
-    trans = trans.index_put((ray, pos + 1), torch.exp(-tau))
-    T = torch.cumprod(trans, 1)[ray, pos]
+    # exclusive sum of the optical depths, as nerfacc's plain-PyTorch path (a cumprod's backward
+    # reads its input on the host, so no CUDA graph could capture it)
+    dense = torch.zeros(R, N + 1, dtype=sigmas.dtype, device=sigmas.device)
+    dense = dense.index_put((ray, pos + 1), tau)
+    T = torch.exp(-torch.cumsum(dense, 1)[ray, pos])
     w = torch.where(T >= T_MIN, T * -torch.expm1(-tau), torch.zeros_like(T))
     z = torch.zeros(R, dtype=sigmas.dtype, device=sigmas.device)
     opacity = z.index_add(0, ray, w)
