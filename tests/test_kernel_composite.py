@@ -306,6 +306,37 @@ def test_render_benchmarks_run_at_tiny_size():
     assert r["warp_pipeline_fixed_ms"] > 0 and r["fixed_capacity"] > r["n_samples"]
 
 
+def test_plain_pytorch_baseline_matches_the_kernel():
+    """The benchmark's PyTorch composite (its speed baseline) computes the same maths as the
+    kernel, values and gradients, with n_max given (graph-capturable) or read."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ is not installed
+    from benchmarks.kernels_render import torch_composite
+
+    sig, rgbs, t_s, t_e, pi = _random_case(R=24, max_n=40)
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    outs = []
+    for fn in (
+        lambda s, c: composite(s, c, t_s, t_e, pi, background=bg),
+        lambda s, c: torch_composite(s, c, t_s.double(), t_e.double(), pi, bg.double()),
+        lambda s, c: torch_composite(
+            s, c, t_s.double(), t_e.double(), pi, bg.double(), n_max=int(pi[:, 1].max())
+        ),
+    ):
+        double = len(outs) > 0
+        s = (sig.double() if double else sig).clone().requires_grad_()
+        c = (rgbs.double() if double else rgbs).clone().requires_grad_()
+        out = fn(s, c)
+        (out["rgb"].sum() + out["depth"].sum()).backward()
+        outs.append((out["rgb"].double(), s.grad.double(), c.grad.double()))
+    for a, b in zip(outs[1], outs[2], strict=True):
+        assert torch.equal(a, b)
+    for a, b in zip(outs[0], outs[1], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-5)
+
+
 def test_background_shape_is_checked():
     pi = _packed(torch.tensor([2, 1]))
     x = torch.rand(3)
