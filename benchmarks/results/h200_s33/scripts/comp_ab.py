@@ -1,12 +1,19 @@
+# ruff: noqa: B023  (each closure is called within its own loop iteration)
 """Composite block layout: HEAD's kernels (.gpu-job/oldkernels, backward rescans) against the
 tree's (backward reads forward's transmittance), same inputs, interleaved, 65,536 rays."""
-import json, os, sys
+
+import json
+import os
+import sys
+
 import torch
+
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import oldkernels.composite as old
+
+import fastenerf.kernels.composite as new
 from benchmarks import kernels_render as kr
 from benchmarks.timing import time_ms
-import fastenerf.kernels.composite as new
-import oldkernels.composite as old
 
 out = {"gpu": torch.cuda.get_device_name()}
 for spr in (64, 192):
@@ -27,9 +34,11 @@ for spr in (64, 192):
 
     a, ga = run(old, True)
     b, gb = run(new, True)
-    same = all(torch.equal(a[k], b[k]) for k in a) and all(torch.equal(x, y) for x, y in zip(ga, gb))
+    same = all(torch.equal(a[k], b[k]) for k in a) and all(
+        torch.equal(x, y) for x, y in zip(ga, gb, strict=False)
+    )
     r = {"n_samples": int(sig.numel()), "bit_identical": same}
-    for rep in range(3):
+    for _rep in range(3):
         for name, mod in (("old", old), ("new", new), ("torch", None)):
             with torch.no_grad():
                 f = time_ms(lambda: run(mod, False), "cuda", 20)
