@@ -23,7 +23,6 @@ from torch.profiler import record_function
 
 from . import run_config, train_state
 from .config import TrainConfig
-from .data.events import EventIndex
 from .data.formats.native import Scene
 from .device_step import FiniteGuard, PendingStats, device_scalar, supports_device_guard
 from .errors import InputError
@@ -33,8 +32,6 @@ from .hooks import Hook, default_hooks
 from .losses import total_loss
 from .memory import check_ray_batch
 from .optim import field_adam, lr_as_floats, set_lr
-from .perturb import perturb_training_data
-from .pose_smoothing import smoothed_rig
 from .run import (
     CHECKPOINT,
     load_checkpoint,
@@ -43,19 +40,15 @@ from .run import (
     scene_background,
     write_progress,
 )
-from .sampling import RaySampler, WindowSampler
 from .self_calibration import SelfCalibration, measured_ratio
+from .training_data import build_training_data, exact_grid_poses, observed_poses
 
 HISTORY_MAX = 100_000
-# Batches the sampler draws at once: its host cost per block is about that of one batch.
-SAMPLER_PREFETCH = 16
 # (samples per ray, float32 values autograd keeps per sample) of a training step, for the
 # memory check before the first batch: vanilla's 64 + 128 samples through 8×256 layers (kept
 # for both passes); ngp's typical samples per ray once carved (the fog's first steps take more,
 # up to the marcher's cap) through the hash features and two 64-wide MLPs.
 BATCH_MEMORY = {"vanilla": (192, 4096), "ngp": (256, 512)}
-# Training-camera poses the ngp occupancy grid is told about (space none sees stays empty).
-OBSERVED_VIEWS = 100
 # Device-paced steps: the stats come to the host every this many steps (one copy for all), so
 # the divergence guard learns of non-finite losses at most this late (its patience is larger).
 STATS_FLUSH_EVERY = 16
@@ -85,7 +78,9 @@ class Trainer:
         np.random.seed(seed)
         torch.manual_seed(seed)
         self._check_batch_memory()
-        self._build_data(scene)
+        d = build_training_data(scene, self.cfg, self.device)
+        self.rig, self.index, self.windows, self.sampler = d.rig, d.index, d.windows, d.sampler
+        self.perturbation, self.smoothing = d.perturbation, d.smoothing
         self.field: Field = make_field(self.cfg.backend, scene.config, self.cfg).to(self.device)
         self.optimizer = field_adam(self.field, self.cfg, self.device)
         self.selfcal = self._make_self_calibration()  # None unless refine/estimate is on
@@ -138,67 +133,9 @@ class Trainer:
         what = f"a step's rays (--rays {self.cfg.rays_per_step:,} at t0 and t1):"
         check_ray_batch(self.rays_per_step_total, spr, floats, str(self.device), what)
 
-    def _build_data(self, scene: Scene) -> None:
-        """Rig, event index, window and ray samplers: the data half of the pipeline."""
-        sc, c = scene.config, self.cfg
-        # the studies' perturbations (identity at zero levels); test views stay exact
-        self.rig, events, self.perturbation = perturb_training_data(scene, c.perturb)
-        self.index = EventIndex(
-            events,
-            sc.pos_threshold,
-            sc.neg_threshold,
-            sc.polarity_offset,
-            t_start=sc.t_start_us,
-            t_end=sc.t_end_us,
-            loop=sc.loop,
-        )
-        self.windows = WindowSampler(
-            sc.n_views,
-            sc.t_start_us,
-            sc.t_end_us,
-            c.win_min,
-            c.win_max,
-            c.win_redraw,
-            sc.loop,
-            c.seed,
-        )
-        self.smoothing = self._smooth_poses() if c.smooth_poses else None
-        self.sampler = RaySampler(
-            self.index,
-            self.rig,
-            self.windows,
-            rays_per_step=c.rays_per_step,
-            windows_per_step=c.windows_per_step,
-            neg_ratio=c.neg_ratio,
-            device=self.device,
-            seed=c.seed,
-            prefetch=SAMPLER_PREFETCH,
-            with_poses=c.refine_poses,
-            with_parts=c.estimate_threshold,
-        )
-
-    def _grid_times(self) -> np.ndarray:
-        """The training pose grid, (n_views + 1,) int64 µs."""
-        return self.windows.grid_times(np.arange(self.windows.n_views + 1))
-
-    def _exact_grid_poses(self) -> np.ndarray | None:
-        """(G, 4, 4) float64 unperturbed grid poses where a study turned them, else None."""
-        p = self.perturbation or {}
-        if not (p.get("pose") or p.get("mount")):
-            return None
-        return self.scene.rig().pose(self._grid_times())
-
-    def _smooth_poses(self) -> dict:
-        """The motion prior (`pose_smoothing`) on the training rig; returns its report (with
-        the error before and after where a study knows the exact poses)."""
-        c, exact, t = self.cfg, self._exact_grid_poses(), self._grid_times()
-        self.rig, report = smoothed_rig(self.rig, t, c.smooth_poses, exact, c.smooth_order)
-        return report
-
     def _observe_training_cameras(self) -> None:
         sc = self.scene.config
-        c2w = self.sampler.grid_c2w[:-1].cpu().numpy()
-        c2w = c2w[np.unique(np.linspace(0, len(c2w) - 1, OBSERVED_VIEWS).round().astype(int))]
+        c2w = observed_poses(self.sampler)
         self.field.observe_cameras(self.rig.intrinsics.K, c2w, sc.width, sc.height, sc.near)
 
     def set_step_mode(self, mode: str, capture: bool | None = None) -> str:
@@ -241,7 +178,8 @@ class Trainer:
     def _make_self_calibration(self) -> SelfCalibration | None:
         if not SelfCalibration.wanted(self.cfg):
             return None
-        sc, true_c2w = self.scene.config, self._exact_grid_poses()  # a study knows the truth
+        sc = self.scene.config
+        true_c2w = exact_grid_poses(self.scene, self.perturbation)  # a study's truth
         if true_c2w is not None:
             true_c2w = torch.as_tensor(true_c2w, device=self.device)
         thresholds = (sc.pos_threshold, sc.neg_threshold)
