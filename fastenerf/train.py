@@ -24,7 +24,7 @@ from torch.profiler import record_function
 from . import run_config, train_state
 from .config import TrainConfig
 from .data.formats.native import Scene
-from .device_step import FiniteGuard, PendingStats, device_scalar, supports_device_guard
+from .device_step import FiniteGuard, PendingStats, supports_device_guard
 from .errors import InputError
 from .fields import Field, make_field
 from .graph_step import graphed_step
@@ -41,17 +41,14 @@ from .run import (
     write_progress,
 )
 from .self_calibration import SelfCalibration, measured_ratio
+from .step_stats import STATS_FLUSH_EVERY, append_history, step_stats
 from .training_data import build_training_data, exact_grid_poses, observed_poses
 
-HISTORY_MAX = 100_000
 # (samples per ray, float32 values autograd keeps per sample) of a training step, for the
 # memory check before the first batch: vanilla's 64 + 128 samples through 8×256 layers (kept
 # for both passes); ngp's typical samples per ray once carved (the fog's first steps take more,
 # up to the marcher's cap) through the hash features and two 64-wide MLPs.
 BATCH_MEMORY = {"vanilla": (192, 4096), "ngp": (256, 512)}
-# Device-paced steps: the stats come to the host every this many steps (one copy for all), so
-# the divergence guard learns of non-finite losses at most this late (its patience is larger).
-STATS_FLUSH_EVERY = 16
 
 
 class Trainer:
@@ -88,7 +85,7 @@ class Trainer:
         self.background = None if bg is None else torch.tensor(bg, device=self.device)
         self.amp = bool(self.cfg.amp and self.device.type == "cuda")
         self.lock = threading.Lock()
-        self.history: list[dict] = []  # recent steps' stats (trimmed to HISTORY_MAX)
+        self.history: list[dict] = []  # recent steps' stats (trimmed to step_stats.HISTORY_MAX)
         self.step_count = 0
         self.train_seconds = self.eval_seconds = self.wall_seconds = 0.0
         self._queued = False  # steps the device may still be running (settle_clock)
@@ -315,18 +312,8 @@ class Trainer:
         self.nonfinite_run = int(run)
         self.skipped_steps = self._skipped_before_guard + int(skipped)
         for st in done:
-            if self.skipped_steps:
-                st["skipped_steps"] = self.skipped_steps
-            self._append_history(st)
+            append_history(self.history, st, self.skipped_steps)
         return done
-
-    def _flush_due(self) -> bool:
-        return len(self.pending) + 1 >= STATS_FLUSH_EVERY
-
-    def _append_history(self, stats: dict) -> None:
-        self.history.append(stats)
-        if len(self.history) > HISTORY_MAX:
-            del self.history[: HISTORY_MAX // 2]
 
     def _forward(self, batch):
         """Render the batch and compute the event loss; gradients zeroed for the backward."""
@@ -368,33 +355,16 @@ class Trainer:
         """The step's stats; on the device path its tensor values stay tensors until the next
         `flush_stats` (every STATS_FLUSH_EVERY steps, or when a hook asks)."""
         on_device = self.guard is not None
-        host = device_scalar if on_device else float
-        n_rays = int(batch.rays_o.shape[0])
-        positive = batch.positive_share
-        positive = batch.positive.float().mean() if positive is None else positive
-        stats = {
-            "step": self.step_count,
-            "loss": loss_value,
-            "rays_per_s": n_rays / max(dt, 1e-9),
-            "elapsed_s": self.train_seconds,
-            "lr": lr,
-            "positive_fraction": host(positive),
-            **{k: host(v) for k, v in parts.items()},
-        }
-        # the samples the field ran on, and the marched ones where compaction kept fewer
-        for key, name in (("n_samples", "samples_per_ray"), ("n_marched", "marched_per_ray")):
-            if key in out:
-                n = out[key]
-                n = float(n) if torch.is_tensor(n) and not on_device else n
-                stats[name] = n / n_rays  # a device count: one division, int32 -> float32
+        stats = step_stats(
+            batch, out, parts, loss_value, lr, dt, self.step_count, self.train_seconds, on_device
+        )
         # the calibration's estimates: every step on the plain path, at the flush steps (as
         # device tensors the flush copies) on the device-paced one
-        if self.selfcal is not None and (not on_device or self._flush_due()):
+        flush_step = len(self.pending) + 1 >= STATS_FLUSH_EVERY
+        if self.selfcal is not None and (not on_device or flush_step):
             stats.update(self.selfcal.stats(on_device))
         if not on_device:
-            if self.skipped_steps:
-                stats["skipped_steps"] = self.skipped_steps
-            self._append_history(stats)
+            append_history(self.history, stats, self.skipped_steps)
             return stats
         self.pending.add(stats)
         if len(self.pending) >= STATS_FLUSH_EVERY:  # on CUDA read one flush later: no wait

@@ -15,7 +15,8 @@ import torch
 from fastenerf.data.formats.native import load_scene
 from fastenerf.hooks import Checkpointer, DivergenceGuard, MetricsLog
 from fastenerf.run import load_checkpoint
-from fastenerf.train import STATS_FLUSH_EVERY, Trainer
+from fastenerf.step_stats import STATS_FLUSH_EVERY
+from fastenerf.train import Trainer
 from tests.same_steps import assert_same_losses, assert_same_tensor
 from tests.test_train import NGP_TINY, tiny_cfg
 

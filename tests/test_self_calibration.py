@@ -526,7 +526,7 @@ def test_device_paced_step_reads_the_estimates_at_its_flush_only(scene, tmp_path
     """On the device-paced step the calibration's estimates join the pending stats as device
     tensors: a host read at the step would wait for every queued step, off the training
     clock (60 s runs with an option trained for minutes). They reach the history as floats."""
-    from fastenerf.train import STATS_FLUSH_EVERY
+    from fastenerf.step_stats import STATS_FLUSH_EVERY
 
     cfg = dict(refine_poses=True, estimate_threshold=True, step_mode="device")
     tr = Trainer(scene, tiny(**cfg, perturb=PerturbConfig(pose_error_deg=1.0)), tmp_path / "r")
