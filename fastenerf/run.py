@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import pickle
+import threading
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -103,6 +104,38 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
     return path
+
+
+class CheckpointWriter:
+    """Writes RUN/checkpoint.pt and then RUN/progress.json, each atomically; in a background
+    thread when asked, one write at a time (a write waits for the one before it)."""
+
+    def __init__(self, run_dir: str | Path):
+        self.run_dir = Path(run_dir)
+        self._thread: threading.Thread | None = None
+
+    def write(self, state: dict, progress: dict, background: bool = False) -> Path:
+        """Write `state` (CPU tensors: training may go on meanwhile) and `progress`; returns
+        the checkpoint's path."""
+        self.wait()
+        path = self.run_dir / CHECKPOINT
+
+        def write() -> None:
+            save_checkpoint(path, state)
+            write_progress(self.run_dir, progress)
+
+        if background:
+            self._thread = threading.Thread(target=write, name="fastenerf-checkpoint")
+            self._thread.start()
+        else:
+            write()
+        return path
+
+    def wait(self) -> None:
+        """Block until a checkpoint being written in the background is on disk."""
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict:

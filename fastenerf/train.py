@@ -34,11 +34,10 @@ from .memory import check_ray_batch
 from .optim import field_adam, lr_as_floats, set_lr
 from .run import (
     CHECKPOINT,
+    CheckpointWriter,
     load_checkpoint,
     resolve_device,
-    save_checkpoint,
     scene_background,
-    write_progress,
 )
 from .self_calibration import SelfCalibration, measured_ratio
 from .step_stats import STATS_FLUSH_EVERY, append_history, step_stats
@@ -96,7 +95,7 @@ class Trainer:
         self.stopped = False
         self.sync_clock = False
         self._hooks: list[Hook] = []
-        self._writer: threading.Thread | None = None
+        self._writer = CheckpointWriter(self.out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self._observe_training_cameras()
         if checkpoint is not None:
@@ -447,25 +446,12 @@ class Trainer:
             h.before_checkpoint(self)
         self.flush_stats()
         self.settle_clock()  # the copy below would wait for queued steps off the clock
-        path = self.out_dir / CHECKPOINT
-        self.wait_for_checkpoint()
+        self.wait_for_checkpoint()  # one CPU copy of the state at a time: the last write ends first
         with self.lock:
             state = train_state.cpu_copy(train_state.trainer_state(self))
         progress = train_state.progress_record(self, finished)
-
-        def write() -> None:
-            save_checkpoint(path, state)
-            write_progress(self.out_dir, progress)
-
-        if background:
-            self._writer = threading.Thread(target=write, name="fastenerf-checkpoint")
-            self._writer.start()
-        else:
-            write()
-        return path
+        return self._writer.write(state, progress, background)
 
     def wait_for_checkpoint(self) -> None:
         """Block until a checkpoint being written in the background is on disk."""
-        if self._writer is not None:
-            self._writer.join()
-            self._writer = None
+        self._writer.wait()
