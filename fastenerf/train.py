@@ -41,6 +41,7 @@ from .run import (
 )
 from .self_calibration import SelfCalibration, measured_ratio
 from .step_stats import STATS_FLUSH_EVERY, append_history, step_stats
+from .step_update import update_on_device, update_plain
 from .training_data import build_training_data, exact_grid_poses, observed_poses
 
 # (samples per ray, float32 values autograd keeps per sample) of a training step, for the
@@ -169,7 +170,7 @@ class Trainer:
     def _graph_body(self, batch) -> tuple[dict, torch.Tensor, dict]:
         """What a graphed step captures: render, loss, backward, guard and update."""
         out, loss, parts = self._forward(batch)
-        return out, self._update_on_device(loss), parts
+        return out, update_on_device(loss, self.optimizer, self.guard, self.selfcal), parts
 
     def _make_self_calibration(self) -> SelfCalibration | None:
         if not SelfCalibration.wanted(self.cfg):
@@ -255,9 +256,14 @@ class Trainer:
             else:
                 out, loss, parts = self._forward(batch)
                 if self.guard is None:
-                    loss_value = self._update_plain(loss)
+                    loss_value = update_plain(loss, self.optimizer, self.selfcal)
+                    if math.isfinite(loss_value):
+                        self.nonfinite_run = 0
+                    else:  # the device path's counters are its guard's, read at a flush
+                        self.skipped_steps += 1
+                        self.nonfinite_run += 1
                 else:
-                    loss_value = self._update_on_device(loss)
+                    loss_value = update_on_device(loss, self.optimizer, self.guard, self.selfcal)
             self.step_count += 1
             if self.sync_clock:
                 self.sync()
@@ -265,34 +271,6 @@ class Trainer:
             dt = time.perf_counter() - t_begin
             self.train_seconds += dt
             return self._record(batch, out, parts, loss_value, lr, dt)
-
-    def _update_plain(self, loss: torch.Tensor) -> float:
-        """The host reads the loss; a non-finite one never reaches the weights."""
-        loss_value = float(loss.detach())
-        if math.isfinite(loss_value):
-            with record_function("backward"):
-                loss.backward()
-            with record_function("optimizer"):
-                self.optimizer.step()
-                if self.selfcal is not None:
-                    self.selfcal.step()
-            self.nonfinite_run = 0
-        else:
-            self.skipped_steps += 1
-            self.nonfinite_run += 1
-        return loss_value
-
-    def _update_on_device(self, loss: torch.Tensor) -> torch.Tensor:
-        """The same decision on the device: the fused Adam skips on a non-finite loss or
-        gradient; the host learns of it at the next `flush_stats`."""
-        with record_function("backward"):
-            loss.backward()
-        with record_function("optimizer"):
-            found_inf = self.guard.check(loss, self.optimizer)
-            self.optimizer.step()
-            if self.selfcal is not None:
-                self.selfcal.step(found_inf)
-        return loss.detach()
 
     def flush_stats(self) -> list[dict]:
         """Bring device-held stats to the host (one copy) and into `history`; update the
