@@ -2,8 +2,10 @@
 
 `Trainer` builds what a run needs and takes one optimisation step at a time; `Trainer.run`
 is THE loop, and everything around the steps (evaluation, logging, progress, checkpoints,
-stopping) is a hook (`fastenerf.hooks`). The run folder's files are `fastenerf.run`'s; the
-checkpoint's contents are `fastenerf.train_state`'s, config.json's `fastenerf.run_config`'s.
+stopping) is a hook (`fastenerf.hooks`). What it trains on is `fastenerf.training_data`'s, a
+step's update `fastenerf.step_update`'s and its stats `fastenerf.step_stats`'s. The run
+folder's files are `fastenerf.run`'s; the checkpoint's contents are `fastenerf.train_state`'s,
+config.json's `fastenerf.run_config`'s.
 A resumed run takes the same next steps as one that never stopped (bit-identical on CPU).
 Training time excludes evaluation and checkpoint time; both are recorded.
 """
