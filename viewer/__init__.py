@@ -7,6 +7,7 @@ frame.py     one frame: render_raw (through fastenerf.render.render_image) and s
 blit.py      GL: FrameTexture (pinned upload), Offscreen, headless EGL snapshot
 worker.py    background render thread for the window
 source.py    what is viewed: a run on disk, live training (TrainThread), or a field
+panels.py    the window's control panel, one function per section
 app.py       the imgui-bundle window (Viewer, run_app)
 bench.py     bench_viewer / bench_upload
 """

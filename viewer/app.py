@@ -19,13 +19,12 @@ import torch
 
 from .autoscale import AutoScale
 from .camera import fov_y_of, intrinsics_for_fov, save_camera_path
-from .frame import MODES, ViewSettings, render_raw, shade
+from .frame import ViewSettings, render_raw, shade
+from .panels import control_panel
 from .source import ViewSource
-from .tonemap import Exposure
 from .worker import Job, RenderWorker
 
 PANEL_WIDTH = 330
-MODE_LABELS = {"rgb": "RGB", "depth": "Depth", "opacity": "Opacity", "occupancy": "Occupancy cells"}
 STILL_AFTER_S = 0.2  # the camera counts as still this long after its last change
 
 
@@ -133,7 +132,7 @@ class Viewer:
         self._poll_model()
         self._take_result()
         imgui.begin_child("panel", imgui.ImVec2(PANEL_WIDTH, 0), imgui.ChildFlags_.borders)
-        self._panel()
+        control_panel(self)
         imgui.end_child()
         imgui.same_line()
         flags = imgui.WindowFlags_.no_scrollbar | imgui.WindowFlags_.no_scroll_with_mouse
@@ -316,128 +315,6 @@ class Viewer:
         self.snapped = i
         self.message = f"snapped to pose {i}"
 
-    # ---- panel ------------------------------------------------------------------------------
-
-    def _panel(self) -> None:
-        from imgui_bundle import imgui
-
-        s = self.settings
-        imgui.text(self.src.name)
-        imgui.text_disabled("drag orbit | right/shift-drag pan | wheel zoom")
-        imgui.text_disabled("R reset | N snap to nearest scene pose")
-        if imgui.collapsing_header("Camera", imgui.TreeNodeFlags_.default_open):
-            ch, self.fov_y = imgui.slider_float("fov y (deg)", self.fov_y, 5.0, 140.0, "%.1f")
-            ch2, s.near = imgui.input_float("near", s.near, 0.0, 0.0, "%.4g")
-            ch3, s.far = imgui.input_float("far (occupancy)", s.far, 0.0, 0.0, "%.4g")
-            s.near = max(s.near, 0.0)
-            s.far = max(s.far, s.near + 1e-6)
-            if imgui.button("Reset (R)"):
-                self.reset_camera()
-            imgui.same_line()
-            if imgui.button("Snap (N)"):
-                self.snap()
-            if self.snapped is not None:
-                imgui.same_line()
-                imgui.text(f"pose {self.snapped}")
-            t = self.cam.target
-            imgui.text(f"target {t[0]:.2f} {t[1]:.2f} {t[2]:.2f}  dist {self.cam.distance:.2f}")
-        if imgui.collapsing_header("Display", imgui.TreeNodeFlags_.default_open):
-            labels = [MODE_LABELS[m] for m in MODES]
-            _, i = imgui.combo("mode", MODES.index(s.mode), labels)
-            s.mode = MODES[i]
-            e = s.exposure
-            _, e.ev = imgui.slider_float("exposure (EV)", e.ev, -6.0, 6.0, "%.2f")
-            _, e.gain = imgui.slider_float(
-                "log gain", e.gain, 0.25, 4.0, "%.2f", imgui.SliderFlags_.logarithmic
-            )
-            _, e.gamma = imgui.slider_float(
-                "gamma", e.gamma, 0.25, 4.0, "%.2f", imgui.SliderFlags_.logarithmic
-            )
-            if imgui.button("Reset exposure"):
-                s.exposure = Exposure()
-            auto_depth = s.depth_lo is None
-            ch, auto_depth = imgui.checkbox("auto depth range", auto_depth)
-            if auto_depth:
-                s.depth_lo = s.depth_hi = None
-            else:
-                lo = s.depth_lo if s.depth_lo is not None else s.near
-                hi = s.depth_hi if s.depth_hi is not None else min(s.far, 10.0)
-                _, (lo, hi) = imgui.drag_float2("depth lo/hi", [lo, hi], 0.01)
-                s.depth_lo, s.depth_hi = lo, max(hi, lo + 1e-6)
-        if imgui.collapsing_header("Resolution", imgui.TreeNodeFlags_.default_open):
-            _, self.auto_on = imgui.checkbox("drop resolution while moving", self.auto_on)
-            _, self.auto.target_fps = imgui.slider_float(
-                "target fps", self.auto.target_fps, 1.0, 120.0, "%.0f"
-            )
-            _, self.auto.max_scale = imgui.slider_float(
-                "full scale", self.auto.max_scale, 0.1, 1.0, "%.2f"
-            )
-            self.auto.min_scale = min(self.auto.min_scale, self.auto.max_scale)
-            fast = self.settings.cone_angle is not None
-            _, fast = imgui.checkbox("fast marching (cone 1/256)", fast)
-            self.settings.cone_angle = 1.0 / 256 if fast else None
-            imgui.text(f"render {self.render_s * 1e3:.1f} ms at scale {self.raw_scale:.2f}")
-        if imgui.collapsing_header("Capture", imgui.TreeNodeFlags_.default_open):
-            if imgui.button("Screenshot"):
-                self.message = f"saved {self.screenshot()}"
-            imgui.same_line()
-            ch, rec = imgui.checkbox("record path", self.recording)
-            if ch:
-                self.recording = rec
-                if rec:
-                    self.path = []
-                    self._record()
-            if self.path and not self.recording:
-                imgui.same_line()
-                if imgui.button(f"Save path ({len(self.path)})"):
-                    self.message = f"saved {self.save_path()}"
-        if self.src.stats is not None:
-            self._training_panel()
-        if self.message:
-            imgui.text_wrapped(self.message)
-
-    def _training_panel(self) -> None:
-        from imgui_bundle import imgui, implot
-
-        st = self.src.stats
-        if not imgui.collapsing_header("Training", imgui.TreeNodeFlags_.default_open):
-            return
-        th = self.src.train_thread
-        if th is not None and not st.done:
-            ch, paused = imgui.checkbox("pause training", th.paused)
-            if ch and paused:
-                th.pause()
-            elif ch:
-                if self.worker is not None:  # it may be rendering lock-free under the pause
-                    self.worker.wait_idle()
-                th.resume()
-        last = st.last
-        step = st.steps[-1] if st.steps else 0
-        loss = st.losses[-1] if st.losses else float("nan")
-        imgui.text(f"step {step}   loss {loss:.4g}")
-        imgui.text(f"{st.rays_per_s:,.0f} rays/s   {last.get('elapsed_s', 0.0):.1f} s trained")
-        if "eval_psnr" in last and last["eval_psnr"] is not None:
-            imgui.text(f"quick eval PSNR {last['eval_psnr']:.2f} dB")
-        if "pose_correction_deg" in last:  # --refine-poses
-            err = last.get("pose_error_deg")
-            imgui.text(
-                f"pose corrections {last['pose_correction_deg']:.3f} deg mean"
-                + ("" if err is None else f", error {err:.3f} deg")
-            )
-        if "threshold_pos" in last:  # --estimate-threshold
-            imgui.text(f"thresholds +{last['threshold_pos']:.4f} / -{last['threshold_neg']:.4f}")
-        if st.done:
-            imgui.text("training finished" if st.error is None else f"failed: {st.error}")
-        if len(st.losses) >= 2 and implot.begin_plot("loss", imgui.ImVec2(-1, 180)):
-            implot.setup_axes(
-                "step", "loss", implot.AxisFlags_.auto_fit, implot.AxisFlags_.auto_fit
-            )
-            implot.setup_axis_scale(implot.ImAxis_.y1, implot.Scale_.log10)
-            xs = np.asarray(st.steps, np.float64)
-            ys = np.maximum(np.asarray(st.losses, np.float64), 1e-12)
-            implot.plot_line("loss", xs, ys)
-            implot.end_plot()
-
     # ---- capture ----------------------------------------------------------------------------
 
     def screenshot(
@@ -461,6 +338,13 @@ class Viewer:
         w, h = self.tex.size if self.tex is not None else (640, 480)
         s = max(self.raw_scale, 1e-6)
         return max(1, round(w / s)), max(1, round(h / s))
+
+    def set_recording(self, on: bool) -> None:
+        """Start (with a new path, from the current view) or stop recording camera poses."""
+        self.recording = on
+        if on:
+            self.path = []
+            self._record()
 
     def _record(self) -> None:
         w, h = self._view_size()
