@@ -20,6 +20,7 @@ import torch
 from .autoscale import AutoScale
 from .camera import fov_y_of, intrinsics_for_fov, save_camera_path
 from .frame import ViewSettings, render_raw, shade
+from .framecache import FrameCache, render_key
 from .panels import control_panel
 from .source import ViewSource
 from .worker import Job, RenderWorker
@@ -54,15 +55,7 @@ class Viewer:
         self.tex = None
         self.worker: RenderWorker | None = None
         self.frames = 0
-        # the cached frame: renderer outputs + what they were rendered for
-        self.raw: dict[str, torch.Tensor] | None = None
-        self.raw_key = None
-        self.raw_scale = 0.0
-        self.raw_model = None
-        self.shade_key = None
-        self.render_s = 0.0
-        self.pending_time: float | None = None  # last render time, not yet fed to AutoScale
-        self.last_render_t = 0.0
+        self.cache = FrameCache()
         self.last_move_t = -math.inf
         self._moved = False
         self.drag = None
@@ -70,6 +63,16 @@ class Viewer:
         self.recording = False
         self.path: list = []
         self.message = ""
+
+    @property
+    def raw(self) -> dict[str, torch.Tensor] | None:
+        """The renderer outputs shown (see FrameCache), None before the first render."""
+        return self.cache.raw
+
+    @property
+    def raw_scale(self) -> float:
+        """The resolution scale the shown frame was rendered at (1: full)."""
+        return self.cache.scale
 
     # ---- lifecycle ------------------------------------------------------------------------
 
@@ -147,9 +150,8 @@ class Viewer:
             imgui.dummy(imgui.ImVec2(vw, vh))
         self._mouse(imgui.is_item_hovered(), vw, vh)
         w, h = self.tex.size if self.tex else (0, 0)
-        overlay = (
-            f"{w}x{h}  {self.render_s * 1e3:.0f} ms/render  {imgui.get_io().framerate:.0f} ui fps"
-        )
+        ms = self.cache.render_s * 1e3
+        overlay = f"{w}x{h}  {ms:.0f} ms/render  {imgui.get_io().framerate:.0f} ui fps"
         if self.worker is not None and self.worker.busy:
             overlay += "  rendering..."
         if self.recording:
@@ -175,25 +177,11 @@ class Viewer:
 
     def _poll_model(self) -> None:
         if self.src.poll():
-            self.raw_key = None
+            self.cache.invalidate()
             self.message = "reloaded a newer checkpoint"
 
     def _moving(self) -> bool:
         return self.drag is not None or time.perf_counter() - self.last_move_t < STILL_AFTER_S
-
-    def _render_key(self, vw: int, vh: int):
-        s = self.settings
-        occ = s.mode == "occupancy"  # the other modes share one render
-        return (
-            self.cam.c2w.tobytes(),
-            round(self.fov_y, 6),
-            s.near,
-            s.far if occ else None,
-            occ,
-            s.background,
-            vw,
-            vh,
-        )
 
     def _live(self) -> bool:
         """Training in this process and not paused: the weights keep changing."""
@@ -207,17 +195,7 @@ class Viewer:
             if res.error is not None:
                 self.message = f"render failed: {res.error}"
             else:
-                j = res.job
-                self.raw, self.raw_key, self.raw_scale, self.raw_model = (
-                    res.raw,
-                    j.key,
-                    j.scale,
-                    j.model,
-                )
-                self.render_s = res.seconds
-                self.pending_time = res.seconds
-                self.last_render_t = time.perf_counter()
-                self.shade_key = None
+                self.cache.adopt(res)
 
     def _update_frame(self, vw: int, vh: int) -> None:
         """Re-shade the cached outputs when only their colouring changed; ask the worker for
@@ -225,36 +203,20 @@ class Viewer:
 
         While the camera moves, or the model trains live, frames render at the AutoScale's
         scale (holding the target frame rate); when both are still, at full scale."""
-        self._reshade()
+        self.cache.reshade(self.tex, self.settings)
         if self.worker is None or self.worker.busy:
             return
         moving = self._moving() or self._live()
-        key = self._render_key(vw, vh)
+        key = render_key(self.cam.c2w, self.fov_y, self.settings, vw, vh)
         model = self.src.model_version()
         full = self.auto.max_scale
-        live_due = model != self.raw_model and time.perf_counter() - self.last_render_t > max(
-            0.25, 2.0 * self.render_s
-        )
-        stale = self.raw is None or key != self.raw_key or live_due
-        if not (stale or (not moving and self.raw_scale < full)):
+        if not self.cache.due(key, model, moving, full):
             return
-        scale = self.auto.update(self.pending_time, moving) if self.auto_on else full
-        self.pending_time = None
+        pending = self.cache.take_pending_time()
+        scale = self.auto.update(pending, moving) if self.auto_on else full
         rw, rh = max(1, round(vw * scale)), max(1, round(vh * scale))
         intr = intrinsics_for_fov(rw, rh, self.fov_y)
         self.worker.submit(Job(self.cam.c2w, intr, self.settings, key, scale, model))
-
-    def _shade_key(self):
-        s, e = self.settings, self.settings.exposure
-        return (id(self.raw), s.mode, e.gain, e.ev, e.gamma, s.depth_lo, s.depth_hi)
-
-    def _reshade(self) -> None:
-        if self.raw is None or self.tex is None or self._shade_key() == self.shade_key:
-            return
-        # RGBA from a GPU: measured 10-30% faster through glTexSubImage2D than RGB (H100)
-        rgba = self.raw["depth"].device.type == "cuda"
-        self.tex.upload(shade(self.raw, self.settings, alpha=rgba))
-        self.shade_key = self._shade_key()
 
     # ---- input ------------------------------------------------------------------------------
 

@@ -98,7 +98,7 @@ def resolution_section(v) -> None:
     auto.min_scale = min(auto.min_scale, auto.max_scale)
     _, fast = imgui.checkbox("fast marching (cone 1/256)", v.settings.cone_angle is not None)
     v.settings.cone_angle = 1.0 / 256 if fast else None
-    imgui.text(f"render {v.render_s * 1e3:.1f} ms at scale {v.raw_scale:.2f}")
+    imgui.text(f"render {v.cache.render_s * 1e3:.1f} ms at scale {v.cache.scale:.2f}")
 
 
 def capture_section(v) -> None:
