@@ -9,6 +9,7 @@ worker.py    background render thread for the window
 framecache.py the frame shown: re-shade it, or ask the worker for a new render
 source.py    what is viewed: a run on disk, live training (TrainThread), or a field
 panels.py    the window's control panel, one function per section
+controls.py  mouse drag and wheel over the view -> orbit / pan / zoom
 app.py       the imgui-bundle window (Viewer, run_app)
 bench.py     bench_viewer / bench_upload
 """

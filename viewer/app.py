@@ -19,6 +19,7 @@ import torch
 
 from .autoscale import AutoScale
 from .camera import fov_y_of, intrinsics_for_fov, save_camera_path
+from .controls import MouseDrag
 from .frame import ViewSettings, render_raw, shade
 from .framecache import FrameCache, render_key
 from .panels import control_panel
@@ -58,7 +59,7 @@ class Viewer:
         self.cache = FrameCache()
         self.last_move_t = -math.inf
         self._moved = False
-        self.drag = None
+        self.mouse = MouseDrag()
         self.snapped: int | None = None
         self.recording = False
         self.path: list = []
@@ -148,7 +149,8 @@ class Viewer:
             imgui.image(imgui.ImTextureRef(self.tex.glo), imgui.ImVec2(vw, vh))
         else:
             imgui.dummy(imgui.ImVec2(vw, vh))
-        self._mouse(imgui.is_item_hovered(), vw, vh)
+        if self.mouse.update(self.cam, self.fov_y, imgui.is_item_hovered(), vw, vh):
+            self._camera_moved()
         w, h = self.tex.size if self.tex else (0, 0)
         ms = self.cache.render_s * 1e3
         overlay = f"{w}x{h}  {ms:.0f} ms/render  {imgui.get_io().framerate:.0f} ui fps"
@@ -181,7 +183,7 @@ class Viewer:
             self.message = "reloaded a newer checkpoint"
 
     def _moving(self) -> bool:
-        return self.drag is not None or time.perf_counter() - self.last_move_t < STILL_AFTER_S
+        return self.mouse.active or time.perf_counter() - self.last_move_t < STILL_AFTER_S
 
     def _live(self) -> bool:
         """Training in this process and not paused: the weights keep changing."""
@@ -224,32 +226,6 @@ class Viewer:
         self.last_move_t = time.perf_counter()
         self.snapped = None
         self._moved = True
-
-    def _mouse(self, hovered: bool, vw: int, vh: int) -> None:
-        from imgui_bundle import imgui
-
-        io = imgui.get_io()
-        if hovered and self.drag is None:
-            for b in (0, 1, 2):
-                if imgui.is_mouse_clicked(b):
-                    self.drag = 1 if (b == 0 and io.key_shift) else b
-        if self.drag is not None:
-            held = any(imgui.is_mouse_down(b) for b in (0, 1, 2))
-            if not held:
-                self.drag = None
-            else:
-                dx, dy = io.mouse_delta.x, io.mouse_delta.y
-                if dx or dy:
-                    if self.drag == 0:
-                        # a drag across the view's width turns the scene once around
-                        self.cam.orbit(-2 * math.pi * dx / vw, math.pi * dy / vh)
-                    else:
-                        f = 0.5 * vh / math.tan(math.radians(self.fov_y) / 2)
-                        self.cam.pan(dx / f, dy / f)
-                    self._camera_moved()
-        if hovered and io.mouse_wheel:
-            self.cam.zoom(0.9**io.mouse_wheel)
-            self._camera_moved()
 
     def _keys(self) -> None:
         from imgui_bundle import imgui
