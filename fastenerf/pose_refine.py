@@ -18,7 +18,7 @@ leaves the scene free to drift. Rows no window uses (a loop's last row, the twin
 first) keep a zero correction and are left out of the gauge. That motion is a gauge only
 when the centres move too: learning turns alone, with the centres held at the given ones, a
 turn shared by every camera about its own centre is no rigid motion of the scene, and
-"mean" would keep the mean of the pose errors for good (`self_calibration.pose_gauge`:
+"mean" would keep the mean of the pose errors for good (`pose_calibration.pose_gauge`:
 the default "auto" then takes "none").
 
 `shared=True` learns ONE camera-frame row (1, 6) for every pose, a camera mis-mounted on its
@@ -392,7 +392,7 @@ class RowAdam(torch.optim.Optimizer):
         if gate[0] > 0:
             update = update * _gate_factor(st, g, s, tc, *gate)
         p.sub_(torch.where(s, update, torch.zeros_like(update)))
-        if decay > 0:  # the ops `SelfCalibration._decay_poses` ran after the step, in order
+        if decay > 0:  # the ops `PoseCalibration._decay` ran after the step, in order
             rate = (lr * decay).clamp(max=1.0) if torch.is_tensor(lr) else min(1.0, lr * decay)
             p.mul_(1.0 - rate * s.to(p.dtype))
 

@@ -15,9 +15,9 @@ from fastenerf.coarse_to_fine import set_encoding_window
 from fastenerf.config import TrainConfig
 from fastenerf.errors import InputError
 from fastenerf.perturb import perturb_poses
+from fastenerf.pose_calibration import pose_lr
 from fastenerf.pose_refine import RowAdam
 from fastenerf.sampling import WindowSampler
-from fastenerf.self_calibration import pose_lr
 
 
 def test_row_adam_moves_only_the_rows_seen_and_is_adam_on_them():
@@ -191,7 +191,7 @@ def test_decay_pulls_only_the_rows_seen_back_and_skips_with_the_step(optimizer):
     """refine_decay shrinks the corrections of the rows the batch saw by lr x decay (a row's
     gradient is zero here, so Adam moves nothing), leaves the others, and a non-finite step
     (found_inf) shrinks nothing; with the row Adam (its step's decay) and with plain Adam
-    (`_decay_poses`; fused, as a device-paced step has it, to skip on found_inf)."""
+    (`_decay`; fused, as a device-paced step has it, to skip on found_inf)."""
     cal = _pose_calibration(
         refine_decay=40.0, refine_lr=1e-2, refine_warmup=0.0, refine_optimizer=optimizer,
         step_mode="device",
@@ -202,7 +202,7 @@ def test_decay_pulls_only_the_rows_seen_back_and_skips_with_the_step(optimizer):
     cal.poses.delta.data.copy_(start)
     seen = torch.zeros(len(start), dtype=torch.bool)
     seen[[1, 3]] = True
-    cal._seen = seen
+    cal.pose_cal.seen = seen
     cal.poses.delta.grad = torch.zeros_like(start)
     assert cal.step(found_inf=torch.tensor(1.0))
     assert torch.equal(cal.poses.delta.detach(), start)  # skipped: nothing moves
@@ -213,7 +213,7 @@ def test_decay_pulls_only_the_rows_seen_back_and_skips_with_the_step(optimizer):
     off = _pose_calibration(refine_decay=0.0)
     off.before_step(progress=0.5, field_lr_scale=1.0)
     off.poses.delta.data.copy_(start)
-    off._seen, off.poses.delta.grad = seen, torch.zeros_like(start)
+    off.pose_cal.seen, off.poses.delta.grad = seen, torch.zeros_like(start)
     off.step()
     assert torch.equal(off.poses.delta.detach(), start)
 
@@ -249,22 +249,22 @@ def test_the_motion_prior_sets_the_refinement_batch_and_decay(scene_config):
     given = dict(refine_windows_per_step=32, refine_decay=5.0, smooth_poses=5, **kw)
     kept = train_preset("fast", "ngp", **given).resolved(sc)
     assert (kept.refine_windows_per_step, kept.refine_decay, kept.windows_per_step) == (32, 5, 32)
-    assert _pose_calibration().decay == 30.0
-    assert _pose_calibration(smooth_poses=5).decay == 0.0
-    assert _pose_calibration(smooth_poses=5, refine_decay=7.0).decay == 7.0
+    assert _pose_calibration().pose_cal.decay == 30.0
+    assert _pose_calibration(smooth_poses=5).pose_cal.decay == 0.0
+    assert _pose_calibration(smooth_poses=5, refine_decay=7.0).pose_cal.decay == 7.0
 
 
 def _old_step(cal, found_inf):
-    """SelfCalibration.step's pose part as it was: the row Adam's step, then `_decay_poses`."""
-    cal.pose_optimizer.step(cal._seen, found_inf=found_inf)
-    cal._decay_poses(found_inf)
+    """SelfCalibration.step's pose part as it was: the row Adam's step, then `_decay`."""
+    cal.pose_optimizer.step(cal.pose_cal.seen, found_inf=found_inf)
+    cal.pose_cal._decay(found_inf)
 
 
 @pytest.mark.parametrize("fused", [True, False])
 def test_row_adam_decay_is_the_old_step_then_decay(fused, monkeypatch):
     """The row Adam's decay (one launch) gives the corrections of its step followed by the
-    separate `_decay_poses` ops, over steps with changing lr, rows and a skipped one; the
-    hot path runs no `_decay_poses`. The decay matters here: without it they differ."""
+    separate `_decay` ops, over steps with changing lr, rows and a skipped one; the
+    hot path runs no `_decay`. The decay matters here: without it they differ."""
     kw = {"refine_decay": 40.0, "refine_lr": 2e-2, "refine_warmup": 0.0, "step_mode": "device"}
     new, old, plain = (_pose_calibration(**kw) for _ in range(3))
     gen = torch.Generator().manual_seed(3)
@@ -272,14 +272,14 @@ def test_row_adam_decay_is_the_old_step_then_decay(fused, monkeypatch):
     for cal in (new, old, plain):
         cal.pose_optimizer.fused = fused
         cal.poses.delta.data.copy_(start)
-    monkeypatch.setattr(new, "_decay_poses", lambda *_: pytest.fail("decay outside the step"))
+    monkeypatch.setattr(new.pose_cal, "_decay", lambda *_: pytest.fail("decay outside the step"))
     for step in range(6):
         grad = torch.randn(start.shape, generator=gen) * 1e-3
         seen = torch.rand(len(start), generator=gen) < 0.5
         found_inf = torch.tensor(float(step == 2))
         for cal in (new, old, plain):
             cal.before_step(progress=0.3 + 0.1 * step, field_lr_scale=1.0)
-            cal._seen, cal.poses.delta.grad = seen, grad.clone()
+            cal.pose_cal.seen, cal.poses.delta.grad = seen, grad.clone()
         assert new.step(found_inf=found_inf)
         _old_step(old, found_inf)
         plain.pose_optimizer.step(seen, found_inf=found_inf)  # no decay at all
@@ -291,12 +291,12 @@ def test_row_adam_decay_is_the_old_step_then_decay(fused, monkeypatch):
 
 
 def test_decay_without_a_row_adam_step_still_happens():
-    """No pose gradient (the row Adam skips the parameter): `_decay_poses` still shrinks the
+    """No pose gradient (the row Adam skips the parameter): `_decay` still shrinks the
     rows seen; a pose lr of 0 (before refine_start) leaves every bit."""
     cal = _pose_calibration(refine_decay=40.0, refine_lr=1e-2, refine_warmup=0.0)
     start = torch.randn_like(cal.poses.delta) * 0.01
     cal.poses.delta.data.copy_(start)
-    cal._seen = torch.arange(len(start)) % 2 == 0
+    cal.pose_cal.seen = torch.arange(len(start)) % 2 == 0
     cal.before_step(progress=0.0, field_lr_scale=1.0)  # lr 0
     cal.poses.delta.grad = torch.ones_like(start)
     assert cal.step() and torch.equal(cal.poses.delta.detach(), start)
@@ -304,7 +304,7 @@ def test_decay_without_a_row_adam_step_still_happens():
     cal.zero_grad()
     assert cal.step()
     rate = pose_lr(cal.cfg, 0.5) * 40.0
-    want = torch.where(cal._seen[:, None], start * (1 - rate), start)
+    want = torch.where(cal.pose_cal.seen[:, None], start * (1 - rate), start)
     torch.testing.assert_close(cal.poses.delta.detach(), want, rtol=1e-6, atol=0)
 
 
@@ -479,7 +479,7 @@ def test_knots_give_the_rays_and_gradients_of_their_interpolated_rows(fused):
 
 
 def test_knots_are_checked_against_the_grid_and_the_shared_row(scene_config):
-    from fastenerf.self_calibration import check_knots
+    from fastenerf.pose_calibration import check_knots
 
     with pytest.raises(InputError, match="refine_knots"):
         check_knots(41, 41)

@@ -202,7 +202,7 @@ def test_the_trainer_smooths_and_records(tiny_scene, tmp_path):
 def test_the_gate_eases_only_where_the_prior_found_the_poses_off():
     """refine_gate_prior_deg: the gate is off where the prior turned the given poses by more
     than that on average; it holds where they were right, without the prior, and by default."""
-    from fastenerf.self_calibration import row_gate
+    from fastenerf.pose_calibration import row_gate
 
     cfg = TrainConfig(refine_poses=True, refine_gate=1.5, refine_gate_prior_deg=0.05)
     assert row_gate(cfg, 2.0) == 0.0  # a 2° study: the prior turned the poses by ~2°

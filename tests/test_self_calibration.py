@@ -32,11 +32,12 @@ from fastenerf.errors import InputError
 from fastenerf.fields.base import Field
 from fastenerf.losses import event_loss, total_loss
 from fastenerf.perturb import perturb_poses
+from fastenerf.pose_calibration import used_rows
 from fastenerf.pose_refine import PoseRefiner
 from fastenerf.render import camera_directions, generate_rays
 from fastenerf.sampling import RaySampler, WindowSampler
 from fastenerf.se3 import relative_angle_deg, so3_exp
-from fastenerf.self_calibration import SelfCalibration, used_rows
+from fastenerf.self_calibration import SelfCalibration
 from fastenerf.threshold import C_MAX, C_MIN, ThresholdEstimator
 from fastenerf.train import Trainer
 
@@ -230,7 +231,7 @@ def test_auto_gauge_is_none_for_turns_about_the_given_centres():
     """refine_gauge "auto" (the default): no gauge when only turns are learnt (the fixed
     centres pin the frame), the mean gauge when the centres move too; a shared row has none;
     an explicit choice stays."""
-    from fastenerf.self_calibration import pose_gauge
+    from fastenerf.pose_calibration import pose_gauge
 
     assert TrainConfig().refine_gauge == "auto" and pose_gauge(TrainConfig()) == "none"
     assert pose_gauge(TrainConfig(refine_translation=True)) == "mean"
@@ -626,7 +627,7 @@ def test_shared_phase_moments_are_forgotten_at_the_switch(ball):
     assert 1 <= float(st["row_steps"].max()) <= 3  # 3 shared steps + visits without the reset
     assert float(st["exp_avg_sq"].max()) > 0
     # and the per-pose phase starts its own lr schedule (ramp, then decay) at the switch
-    from fastenerf.self_calibration import pose_lr
+    from fastenerf.pose_calibration import pose_lr
 
     tc = TrainConfig(refine_poses=True, refine_start=0.0, refine_shared_until=0.5)
     first = pose_lr(tc, 0.0 + 0.1 * tc.refine_warmup)
