@@ -170,7 +170,7 @@ def test_an_overflowing_sample_buffer_drops_whole_pixels_and_says_so(scene, tmp_
     assert float(parts["dropped"]) == pytest.approx(1 - float(keep.float().mean()))
     # the trainer reports the share, and the capacity grows to what was wanted
     field.sample_capacity.capacity = exact["n_samples"] // 2
-    field._capacity_cone = field.options.marcher.cone_angle
+    field.sampler._capacity_cone = field.options.marcher.cone_angle
     stats = trainer.step()
     trainer.flush_stats()
     assert stats["dropped"] > 0

@@ -20,6 +20,7 @@ from fastenerf.clip import cylinder_mask
 from fastenerf.config import CylinderConfig, TrainConfig
 from fastenerf.fields import field_from_config, make_field
 from fastenerf.fields import ngp as ngp_mod
+from fastenerf.fields import occupancy_sampler as sampler_mod
 from fastenerf.fields.capacity import SampleCapacity
 from fastenerf.fields.ngp import trunc_exp
 from fastenerf.kernels.hashgrid import grid_indices
@@ -584,8 +585,8 @@ def test_ngp_compacted_samples_train_as_all_marched_ones(make, monkeypatch):
         assert torch.isfinite(v).all() and v.abs().sum() > 0, k
         torch.testing.assert_close(v, ref_g[k], rtol=1e-4, atol=1e-6 * float(v.abs().max()))
     # off: not one call into the pruning
-    monkeypatch.setattr(ngp_mod, "prune_samples", None)
-    monkeypatch.setattr(ngp_mod, "prune_samples_fixed", None)
+    monkeypatch.setattr(sampler_mod, "prune_samples", None)
+    monkeypatch.setattr(sampler_mod, "prune_samples_fixed", None)
     f = make("ngp", **opaque)
     again, _, _ = _train_render(f, o, d)
     assert torch.equal(again["rgb"], ref["rgb"]) and again["n_samples"] == ref["n_samples"]

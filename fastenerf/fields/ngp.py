@@ -4,8 +4,9 @@ Encoding, network, sampler and renderer stay separate as in instant-ngp:
     x --hash_grid_encode--> density MLP --> (σ, geometry features)
     d --sh_encode---------> colour MLP([geometry features, SH]) --> rgb
     rays --march_rays (occupancy grid)--> packed samples --composite--> pixels
-Training can compact the marched samples first (`early_stop_eps`): σ alone, without
-gradients, picks the samples still visible (kernels/prune.py); only those run the full field.
+The sampler, with its occupancy grid, is `OccupancySampler` (occupancy_sampler.py). Training
+can compact the marched samples first (`early_stop_eps`): σ alone, without gradients, picks
+the samples still visible (kernels/prune.py); only those run the full field.
 Every heavy op is a Warp kernel from `fastenerf.kernels`; the MLPs are plain PyTorch
 (bf16 autocast on CUDA, set by the trainer). Only what the scene needs is built: the
 cylinder clip exists only when the scene sets one (in the density and in the grid).
@@ -28,15 +29,11 @@ from ..errors import InputError
 from ..kernels.common import as_float32
 from ..kernels.composite import composite, distortion_loss
 from ..kernels.hashgrid import hash_grid_encode, init_table
-from ..kernels.occupancy import OccupancyGrid
-from ..kernels.prune import prune_samples, prune_samples_fixed
 from ..kernels.ray_points import ray_points
-from ..kernels.raymarch import march_rays
-from ..kernels.raymarch_fixed import FixedSamples, empty_fixed_samples, march_rays_fixed
+from ..kernels.raymarch_fixed import FixedSamples
 from ..kernels.sh import sh_encode
-from .base import Field, RenderOutput, check_points, park_non_finite, view_cone_angle
-from .capacity import SampleCapacity
-from .compaction import CompactionSwitch
+from .base import Field, RenderOutput, check_points, park_non_finite
+from .occupancy_sampler import OccupancySampler
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
 # background shows through. On `blocks` (mean box side 1.22; CPU, 116×87, 2048 rays/step, 300
@@ -99,6 +96,20 @@ def _mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int) -> nn.Sequent
     return nn.Sequential(*layers)
 
 
+class _OnSampler:
+    """A field attribute that is its sampler's: the trainer, graph capture and tests reach the
+    sampler's state through the field."""
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.name = name
+
+    def __get__(self, field, owner=None):
+        return self if field is None else getattr(field.sampler, self.name)
+
+    def __set__(self, field, value) -> None:
+        setattr(field.sampler, self.name, value)
+
+
 class NGPField(Field):
     """Hash-grid radiance field over `aabb` with an occupancy grid for empty-space skipping.
 
@@ -111,19 +122,13 @@ class NGPField(Field):
     backend = "ngp"
     # None, or (n_levels,) weights of the hash levels (coarse-to-fine pose refinement)
     level_weights: torch.Tensor | None = None
-    # the training step `update` last saw (the early cone applies before `early_steps`)
-    train_step: int = 0
-    # fixed-capacity training marches (None: exactly sized, the host reads the count)
-    sample_capacity: SampleCapacity | None = None
-    # the same for the compacted samples (MarcherOptions.early_stop_eps), None: exact or off
-    pruned_capacity: SampleCapacity | None = None
-    # (R,) uniform [0, 1) march offsets drawn outside a captured step (None: drawn per march)
-    train_jitter: torch.Tensor | None = None
-    _fixed_out = None
-    _fixed_key = None
-    _pruned_out = None
-    _pruned_key = None
-    _capacity_cone = None
+    # the sampler's (fields/occupancy_sampler.py), documented there
+    grid = _OnSampler()
+    compaction = _OnSampler()
+    train_step = _OnSampler()
+    sample_capacity = _OnSampler()
+    pruned_capacity = _OnSampler()
+    train_jitter = _OnSampler()
     _box_key = None
     _box = None
     level_weights_mode: str = "field"  # or "gradient" (fields/level_weights.py)
@@ -148,26 +153,12 @@ class NGPField(Field):
         self.options = opt
         self.cylinder = cylinder
         self.register_buffer("aabb", torch.tensor(aabb, dtype=torch.float32))
-        # the box as kernel arguments: read on the host once, not from the device every march
-        self._aabb_host = [float(v) for v in np.asarray(aabb, dtype=np.float32)]
         self.grid_cfg = opt.encoding
         gen = torch.Generator().manual_seed(seed)
         self.table = nn.Parameter(init_table(self.grid_cfg, "cpu", generator=gen))
         self.density_net = _mlp(self.grid_cfg.n_output_dims, net.hidden, 1 + net.geo_features, 1)
         self.color_net = _mlp(net.geo_features + 16, net.hidden, 3, 2)
-        cyl = None if cylinder is None else (cylinder.radius, cylinder.y_min, cylinder.y_max)
-        # The grid's threshold is an optical thickness over one minimal step: the marcher's.
-        self.grid = OccupancyGrid(
-            list(aabb),
-            opt.occupancy.grid_resolution,
-            1,
-            cylinder=cyl,
-            step_size=opt.marcher.dt_min,
-            device=device,
-        )
-        self.compaction = None  # compaction_auto's switch (None: fixed by the options)
-        if opt.marcher.compaction_auto and self._compaction_set():
-            self.compaction = CompactionSwitch(opt.marcher.compact_below)
+        self.sampler = OccupancySampler(aabb, opt, cylinder, device)
         self.to(device)
 
     # -- state ---------------------------------------------------------------------------
@@ -246,9 +237,14 @@ class NGPField(Field):
             sigma = clip_density(sigma, x, self.cylinder)
         return sigma, geo
 
+    def _sigma(self, x: torch.Tensor) -> torch.Tensor:
+        """σ (N,) float32 at world points x (N, 3), unchecked: for the sampler's own points
+        (a grid's cells, a march's samples), finite, and never read back on the host."""
+        return self._geometry(x)[0]
+
     def density(self, x: torch.Tensor) -> torch.Tensor:
         check_points("x", x, "NGPField.density")
-        return self._geometry(x)[0]
+        return self._sigma(x)
 
     def _radiance(self, geo: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         sh = sh_encode(as_float32(d))
@@ -272,11 +268,11 @@ class NGPField(Field):
         if train:  # checked on the device, not read: see check_points
             rays_o, rays_d, bad = park_non_finite(rays_o, rays_d)
         with torch.no_grad(), record_function("march"):
-            marched = self._march(rays_o, rays_d, near, train)
+            marched = self.sampler.march(rays_o, rays_d, near, train)
         samples = marched
-        if train and self._prunes():
+        if train and self.sampler.prunes():
             with torch.no_grad(), record_function("prune"):
-                samples = self._prune(rays_o, rays_d, marched)
+                samples = self.sampler.prune(rays_o, rays_d, marched, self._sigma)
         packed_info, t_starts, t_ends, ray_idx = samples[:4]
         with record_function("field"):
             # per-ray backward: the rays are learnt under pose refinement (kernels/ray_points)
@@ -306,132 +302,25 @@ class NGPField(Field):
             ).mean()
         return res
 
-    def _march(self, rays_o, rays_d, near: float, train: bool) -> tuple:
-        """Training or inference samples: (packed_info, t_starts, t_ends, ray_idx), or a
-        FixedSamples when training marches into fixed-capacity buffers."""
-        opt = self.options.marcher
-        cone = self._train_cone() if train else opt.cone_angle
-        if not train and (view := view_cone_angle()) is not None:
-            cone = max(cone, view)
-        jitter = None
-        if train:
-            jitter = self.train_jitter
-            if jitter is None or len(jitter) != len(rays_o):
-                jitter = torch.rand(len(rays_o), device=rays_o.device)
-        march = dict(
-            near=near,
-            cone_angle=cone,
-            dt_min=opt.dt_min,
-            max_samples=opt.max_samples,
-            jitter=jitter,
-        )
-        if train and self.sample_capacity is not None:
-            return self._march_fixed(rays_o, rays_d, cone, march)
-        return march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
-
-    def _train_cone(self) -> float:
-        opt = self.options.marcher
-        if opt.early_cone_angle is not None and self.train_step < opt.early_steps:
-            return opt.early_cone_angle
-        return opt.cone_angle
-
     def graph_key(self) -> tuple | None:
         """Capturable while training marches into fixed buffers: (capacities, cone, level
         weights' use). Pose refinement's coarse-to-fine weights change in place
         (`coarse_to_fine`): a graph reads each step's; whether they apply, and how, it bakes in."""
-        if self.sample_capacity is None:
+        key = self.sampler.graph_key()
+        if key is None:
             return None
-        pruned = self.pruned_capacity  # compacting or not is in the key even before sizing
-        cap = (self._prunes(), pruned and pruned.capacity)
         weights = self.level_weights is not None and self.level_weights_mode
-        return (self.sample_capacity.capacity, cap, self._train_cone(), weights)
+        return (*key, weights)
 
     def use_fixed_capacity(self, on: bool) -> None:
         """March (and compact) training batches into fixed-capacity buffers (no host sync;
         `capacity.py`) or into exactly sized ones (the host reads the counts)."""
-        self.sample_capacity = SampleCapacity() if on else None
-        self.pruned_capacity = self._new_pruned_capacity()
-        self._capacity_cone = None
-
-    def _march_fixed(self, rays_o, rays_d, cone: float, march: dict):
-        cap = self.sample_capacity
-        if cap.capacity is None or cone != self._capacity_cone:
-            # first batch, or the cone changed (the want jumps): size it once, exactly
-            exact = march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
-            cap.reset(len(exact[1]))
-            self._capacity_cone = cone
-            if self.pruned_capacity is not None:
-                self.pruned_capacity.reset()  # its want jumps too: sized at this batch
-        key = (len(rays_o), cap.capacity)
-        if self._fixed_out is None or self._fixed_key != key:
-            self._fixed_out = empty_fixed_samples(len(rays_o), cap.capacity, rays_o.device)
-            self._fixed_key = key
-        fixed = march_rays_fixed(
-            rays_o,
-            rays_d,
-            self._aabb_host,
-            self.grid,
-            capacity=cap.capacity,
-            out=self._fixed_out,
-            **march,
-        )
-        cap.observe(fixed.n_wanted)
-        return fixed
-
-    def _new_pruned_capacity(self) -> SampleCapacity | None:
-        """The compacted samples' buffer: with fixed capacity, while compacting."""
-        return SampleCapacity() if self.sample_capacity is not None and self._prunes() else None
-
-    def _compaction_set(self) -> bool:
-        opt = self.options.marcher
-        return opt.early_stop_eps > 0 or opt.alpha_threshold > 0
-
-    def _prunes(self) -> bool:
-        """Whether training compacts its marched samples now (`MarcherOptions.early_stop_eps`;
-        with `compaction_auto`, while the switch says it pays)."""
-        return self._compaction_set() and (self.compaction is None or self.compaction.on)
-
-    def _prune(self, rays_o, rays_d, marched):
-        """The marched samples a training step trains on: those still visible by the density
-        alone (kernels/prune.py), exactly sized or a FixedSamples as `marched` is."""
-        opt = self.options.marcher
-        packed_info, t_starts, t_ends, ray_idx = marched[:4]
-        x, _ = ray_points(rays_o, rays_d, 0.5 * (t_starts + t_ends), ray_idx, packed_info)
-        sigma = self._geometry(x)[0]  # every slot, a fixed buffer's padding too: never read
-        args = (sigma, packed_info, t_starts, t_ends, opt.early_stop_eps, opt.alpha_threshold)
-        if not isinstance(marched, FixedSamples):
-            return prune_samples(*args)
-        cap = self.pruned_capacity
-        if cap.capacity is None:  # first batch: size it once, exactly
-            cap.reset(len(prune_samples(*args)[1]))
-        key = (len(rays_o), cap.capacity)
-        if self._pruned_out is None or self._pruned_key != key:
-            self._pruned_out = empty_fixed_samples(len(rays_o), cap.capacity, rays_o.device)
-            self._pruned_key = key
-        pruned = prune_samples_fixed(*args, capacity=cap.capacity, out=self._pruned_out)
-        cap.observe(pruned.n_wanted)
-        return pruned
+        self.sampler.use_fixed_capacity(on)
 
     # -- occupancy -----------------------------------------------------------------------
     def update(self, step: int) -> None:
         """Refresh the occupancy grid every `update_every` steps (instant-ngp's schedule)."""
-        self.train_step = step
-        opt = self.options.occupancy
-        if step % opt.update_every:
-            return
-        for cap in (self.sample_capacity, self.pruned_capacity):
-            if cap is not None:
-                cap.refresh()
-        if self.compaction is not None and self.compaction.refresh():
-            self.pruned_capacity = self._new_pruned_capacity()  # sized anew at the next batch
-        with torch.no_grad():
-            self.grid.update(
-                step,
-                lambda x: self._geometry(x)[0],  # the grid's own points: finite, not read back
-                decay=opt.grid_decay,
-                threshold=opt.density_threshold,
-                warmup_steps=opt.warmup_steps,
-            )
+        self.sampler.update(step, self._sigma)
 
     def observe_cameras(
         self, K: np.ndarray, c2ws: np.ndarray, width: int, height: int, near: float = 0.0

@@ -1,0 +1,206 @@
+"""The ngp field's sampler: rays marched through an occupancy grid (DESIGN §4).
+
+As nerfacc's OccGridEstimator is separate from the radiance field it samples, this holds what
+places the samples, and the field (fields/ngp.py) only evaluates and composites them:
+    rays --march_rays (occupancy grid)--> packed samples [--prune (σ alone)--> fewer samples]
+The sampler owns the occupancy grid and refreshes it from the field's σ (`update`); it decides
+whether a training step compacts its samples (`MarcherOptions.early_stop_eps`; compaction.py)
+and sizes the fixed-capacity buffers a captured step marches into (capacity.py). It is not a
+module: it adds no parameter or buffer to the field, whose extra state carries the grid.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from ..backends import NGPOptions
+from ..config import CylinderConfig
+from ..kernels.occupancy import OccupancyGrid
+from ..kernels.prune import prune_samples, prune_samples_fixed
+from ..kernels.ray_points import ray_points
+from ..kernels.raymarch import march_rays
+from ..kernels.raymarch_fixed import FixedSamples, empty_fixed_samples, march_rays_fixed
+from .base import view_cone_angle
+from .capacity import SampleCapacity
+from .compaction import CompactionSwitch
+
+# σ (N,) float32, 1/world units, at world points (N, 3): the field's density, unchecked
+SigmaFn = Callable[[torch.Tensor], torch.Tensor]
+
+
+class OccupancySampler:
+    """Samples along rays through an occupancy grid over `aabb`, for an ngp field.
+
+    aabb: [xmin, ymin, zmin, xmax, ymax, zmax] world units; options: the field's options (the
+    marcher and occupancy sections apply here); cylinder: optional clip of the grid's cells;
+    device: where the grid is built (its kernels launched).
+    """
+
+    # the training step `update` last saw (the early cone applies before `early_steps`)
+    train_step: int = 0
+    # fixed-capacity training marches (None: exactly sized, the host reads the count)
+    sample_capacity: SampleCapacity | None = None
+    # the same for the compacted samples (MarcherOptions.early_stop_eps), None: exact or off
+    pruned_capacity: SampleCapacity | None = None
+    # (R,) uniform [0, 1) march offsets drawn outside a captured step (None: drawn per march)
+    train_jitter: torch.Tensor | None = None
+    _fixed_out = None
+    _fixed_key = None
+    _pruned_out = None
+    _pruned_key = None
+    _capacity_cone = None
+
+    def __init__(
+        self,
+        aabb,
+        options: NGPOptions,
+        cylinder: CylinderConfig | None,
+        device: torch.device,
+    ):
+        self.options = options
+        # the box as kernel arguments: read on the host once, not from the device every march
+        self._aabb_host = [float(v) for v in np.asarray(aabb, dtype=np.float32)]
+        cyl = None if cylinder is None else (cylinder.radius, cylinder.y_min, cylinder.y_max)
+        # The grid's threshold is an optical thickness over one minimal step: the marcher's.
+        self.grid = OccupancyGrid(
+            list(aabb),
+            options.occupancy.grid_resolution,
+            1,
+            cylinder=cyl,
+            step_size=options.marcher.dt_min,
+            device=device,
+        )
+        self.compaction = None  # compaction_auto's switch (None: fixed by the options)
+        if options.marcher.compaction_auto and self._compaction_set():
+            self.compaction = CompactionSwitch(options.marcher.compact_below)
+
+    # -- marching ------------------------------------------------------------------------
+    def march(self, rays_o, rays_d, near: float, train: bool) -> tuple:
+        """Training or inference samples: (packed_info, t_starts, t_ends, ray_idx), or a
+        FixedSamples when training marches into fixed-capacity buffers."""
+        opt = self.options.marcher
+        cone = self._train_cone() if train else opt.cone_angle
+        if not train and (view := view_cone_angle()) is not None:
+            cone = max(cone, view)
+        jitter = None
+        if train:
+            jitter = self.train_jitter
+            if jitter is None or len(jitter) != len(rays_o):
+                jitter = torch.rand(len(rays_o), device=rays_o.device)
+        march = dict(
+            near=near,
+            cone_angle=cone,
+            dt_min=opt.dt_min,
+            max_samples=opt.max_samples,
+            jitter=jitter,
+        )
+        if train and self.sample_capacity is not None:
+            return self._march_fixed(rays_o, rays_d, cone, march)
+        return march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
+
+    def _train_cone(self) -> float:
+        opt = self.options.marcher
+        if opt.early_cone_angle is not None and self.train_step < opt.early_steps:
+            return opt.early_cone_angle
+        return opt.cone_angle
+
+    def graph_key(self) -> tuple | None:
+        """What a captured training step bakes in from the sampler: (capacities, cone), or
+        None while training marches into exactly sized buffers (not capturable)."""
+        if self.sample_capacity is None:
+            return None
+        pruned = self.pruned_capacity  # compacting or not is in the key even before sizing
+        cap = (self.prunes(), pruned and pruned.capacity)
+        return (self.sample_capacity.capacity, cap, self._train_cone())
+
+    def use_fixed_capacity(self, on: bool) -> None:
+        """March (and compact) training batches into fixed-capacity buffers (no host sync;
+        `capacity.py`) or into exactly sized ones (the host reads the counts)."""
+        self.sample_capacity = SampleCapacity() if on else None
+        self.pruned_capacity = self._new_pruned_capacity()
+        self._capacity_cone = None
+
+    def _march_fixed(self, rays_o, rays_d, cone: float, march: dict):
+        cap = self.sample_capacity
+        if cap.capacity is None or cone != self._capacity_cone:
+            # first batch, or the cone changed (the want jumps): size it once, exactly
+            exact = march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
+            cap.reset(len(exact[1]))
+            self._capacity_cone = cone
+            if self.pruned_capacity is not None:
+                self.pruned_capacity.reset()  # its want jumps too: sized at this batch
+        key = (len(rays_o), cap.capacity)
+        if self._fixed_out is None or self._fixed_key != key:
+            self._fixed_out = empty_fixed_samples(len(rays_o), cap.capacity, rays_o.device)
+            self._fixed_key = key
+        fixed = march_rays_fixed(
+            rays_o,
+            rays_d,
+            self._aabb_host,
+            self.grid,
+            capacity=cap.capacity,
+            out=self._fixed_out,
+            **march,
+        )
+        cap.observe(fixed.n_wanted)
+        return fixed
+
+    # -- compaction ----------------------------------------------------------------------
+    def _new_pruned_capacity(self) -> SampleCapacity | None:
+        """The compacted samples' buffer: with fixed capacity, while compacting."""
+        return SampleCapacity() if self.sample_capacity is not None and self.prunes() else None
+
+    def _compaction_set(self) -> bool:
+        opt = self.options.marcher
+        return opt.early_stop_eps > 0 or opt.alpha_threshold > 0
+
+    def prunes(self) -> bool:
+        """Whether training compacts its marched samples now (`MarcherOptions.early_stop_eps`;
+        with `compaction_auto`, while the switch says it pays)."""
+        return self._compaction_set() and (self.compaction is None or self.compaction.on)
+
+    def prune(self, rays_o, rays_d, marched, density: SigmaFn):
+        """The marched samples a training step trains on: those still visible by the density
+        alone (kernels/prune.py), exactly sized or a FixedSamples as `marched` is."""
+        opt = self.options.marcher
+        packed_info, t_starts, t_ends, ray_idx = marched[:4]
+        x, _ = ray_points(rays_o, rays_d, 0.5 * (t_starts + t_ends), ray_idx, packed_info)
+        sigma = density(x)  # every slot, a fixed buffer's padding too: never read
+        args = (sigma, packed_info, t_starts, t_ends, opt.early_stop_eps, opt.alpha_threshold)
+        if not isinstance(marched, FixedSamples):
+            return prune_samples(*args)
+        cap = self.pruned_capacity
+        if cap.capacity is None:  # first batch: size it once, exactly
+            cap.reset(len(prune_samples(*args)[1]))
+        key = (len(rays_o), cap.capacity)
+        if self._pruned_out is None or self._pruned_key != key:
+            self._pruned_out = empty_fixed_samples(len(rays_o), cap.capacity, rays_o.device)
+            self._pruned_key = key
+        pruned = prune_samples_fixed(*args, capacity=cap.capacity, out=self._pruned_out)
+        cap.observe(pruned.n_wanted)
+        return pruned
+
+    # -- occupancy -----------------------------------------------------------------------
+    def update(self, step: int, density: SigmaFn) -> None:
+        """Refresh the occupancy grid from `density` every `update_every` steps (instant-ngp's
+        schedule), and the buffer sizes and the compaction switch with it."""
+        self.train_step = step
+        opt = self.options.occupancy
+        if step % opt.update_every:
+            return
+        for cap in (self.sample_capacity, self.pruned_capacity):
+            if cap is not None:
+                cap.refresh()
+        if self.compaction is not None and self.compaction.refresh():
+            self.pruned_capacity = self._new_pruned_capacity()  # sized anew at the next batch
+        with torch.no_grad():
+            self.grid.update(
+                step,
+                density,
+                decay=opt.grid_decay,
+                threshold=opt.density_threshold,
+                warmup_steps=opt.warmup_steps,
+            )
