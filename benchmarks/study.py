@@ -52,6 +52,7 @@ from benchmarks.study_levels import (
     parse_levels,
 )
 from benchmarks.study_report import final_eval, level_row, summarize, write_outputs
+from fastenerf.config import reference_win_max
 from fastenerf.errors import InputError
 from fastenerf.evaluate import make_eval_set
 from fastenerf.hooks import StopOnSignal
@@ -65,7 +66,11 @@ def level_config(study: str, level: Any, scene, args, device: str, base: dict):
     """The TrainConfig of one level: fast preset + --set + the level's overrides + budget."""
     from fastenerf.config import ngp_cone_for_budget
 
-    train = {**base["train"], **level_overrides(study, level, scene.config.n_views, args.seed)}
+    train = {
+        **reference_windows(study, scene.config),
+        **base["train"],
+        **level_overrides(study, level, scene.config.n_views, args.seed),
+    }
     opts = dict(base["backend_options"])
     if args.steps is not None:
         train["steps"] = args.steps
@@ -75,6 +80,15 @@ def level_config(study: str, level: Any, scene, args, device: str, base: dict):
     else:
         cfg = make_config("ngp", "fast", args.budget_s, device, train, opts)
     return cfg.validate()
+
+
+def reference_windows(study: str, scene_config) -> dict[str, int]:
+    """The ablation's windows unless --set gives them: the reference's U{1..5 % of the loop}
+    (10 % real), whatever the device's preset draws (the CPU preset's are longer)."""
+    if study != "ablation":
+        return {}
+    real = scene_config.kind == "real"
+    return {"win_min": 1, "win_max": reference_win_max(scene_config.n_views, real)}
 
 
 def eval_times(budget_s: float | None) -> list[float]:

@@ -14,7 +14,7 @@ from typing import Any, Literal
 
 from . import backends
 from .backends import BACKEND_NAMES, parse_options
-from .cpu_preset import NGP_CPU_RAYS, ngp_cpu_options
+from .cpu_preset import NGP_CPU_RAYS, NGP_CPU_WINDOW_FRACTION, ngp_cpu_options
 from .errors import InputError
 from .perturb_config import PerturbConfig
 from .scene_config import (  # noqa: F401  (re-exported: fastenerf.config is where they are read)
@@ -59,7 +59,8 @@ class TrainConfig:
     """Shortest event window, views: the length is drawn as w ~ U{win_min..win_max}."""
     win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
     """Longest event window, views. Default: 50 synthetic / 100 real views of a 1000-view
-    loop (the reference's), scaled by n_views / 1000."""
+    loop (the reference's), scaled by n_views / 1000; ngp's fast preset on a CPU: 0.2 of a
+    synthetic loop (fastenerf.cpu_preset)."""
     win_redraw: Literal["step", "load"] = "step"
     """When window lengths are drawn: every step (ours), or once per end view at load (ref.)."""
     neg_ratio: float | None = field(default=None, metadata={"min": 0.0, "max": 1.0})
@@ -261,15 +262,15 @@ class TrainConfig:
                 c.log_eps = float(scene.sim_log_eps)
             else:
                 c.log_eps = 1e-5 if real else 0.1
+        cpu_ngp = c.backend == "ngp" and not str(device).startswith("cuda")
         if c.win_max is None:
-            # The reference's 50 (synthetic) / 100 (real) views are of a 1000-view loop: keep
-            # the same fraction of the loop when a scene has another number of views.
-            c.win_max = max(c.win_min, 2, round((100 if real else 50) * scene.n_views / 1000))
+            longer = cpu_ngp and c.preset == "fast" and not real  # fastenerf.cpu_preset
+            fraction = NGP_CPU_WINDOW_FRACTION if longer else None
+            c.win_max = reference_win_max(scene.n_views, real, c.win_min, fraction)
         if c.neg_ratio is None:
             c.neg_ratio = 0.05 if real else 0.1
         if c.distortion_weight is None:
             c.distortion_weight = 0.0 if real else 1e-4
-        cpu_ngp = c.backend == "ngp" and not str(device).startswith("cuda")
         if cpu_ngp:  # the CPU preset fills the options left unset (fastenerf.cpu_preset)
             c.backend_options = ngp_cpu_options(c.backend_options, scene.aabb, scene.cylinder)
         if c.rays_per_step is None:
@@ -299,6 +300,15 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "train config") -> TrainConfig:
         return from_dict(cls, d, where).validate(where)
+
+
+def reference_win_max(
+    n_views: int, real: bool, win_min: int = 1, fraction: float | None = None
+) -> int:
+    """Longest event window, views: the reference's 50 (synthetic) / 100 (real) views of a
+    1000-view loop, as the same fraction of a loop of `n_views` (or `fraction` of it)."""
+    fraction = (0.1 if real else 0.05) if fraction is None else fraction
+    return max(win_min, 2, round(fraction * n_views))
 
 
 # Presets: values a preset fixes; the rest stay at the dataclass defaults (None = scene default).

@@ -17,6 +17,7 @@ from fastenerf.cpu_preset import (
     NGP_CPU_DIAGONAL_STEPS,
     NGP_CPU_OPTIONS,
     NGP_CPU_RAYS,
+    NGP_CPU_WINDOW_FRACTION,
     cpu_dt_min,
 )
 
@@ -67,6 +68,22 @@ def test_gpu_and_vanilla_untouched():
     assert c.rays_per_step == 8192
     v = TrainConfig(backend="vanilla").resolved(scene(), "cpu")
     assert v.backend_options == {} and v.rays_per_step == 512
+
+
+def test_longer_windows_only_for_the_fast_preset_on_a_cpu_and_synthetic_scenes():
+    import dataclasses
+
+    synth = dataclasses.replace(scene(), n_views=1000)
+    real = dataclasses.replace(synth, kind="real")
+    fast = train_preset("fast", "ngp")
+    assert fast.resolved(synth, "cpu").win_max == round(NGP_CPU_WINDOW_FRACTION * 1000) == 200
+    assert fast.resolved(synth, "cuda:0").win_max == 50  # the GPU keeps the reference's
+    assert fast.resolved(real, "cpu").win_max == 100  # real scenes: not measured, reference's
+    assert train_preset("eventnerf", "ngp").resolved(synth, "cpu").win_max == 50
+    assert TrainConfig(backend="vanilla").resolved(synth, "cpu").win_max == 50
+    assert train_preset("fast", "ngp", win_max=30).resolved(synth, "cpu").win_max == 30
+    c = fast.resolved(synth, "cpu")
+    assert c.resolved(synth, "cpu").win_max == 200  # idempotent
 
 
 def test_dt_min_follows_the_clipped_box():

@@ -75,17 +75,21 @@ def test_graph_step_flags_an_overflowing_sample_buffer(scene, tmp_path, device):
     trainer = make(scene, tmp_path / "run", "graph", device, steps=20)
     for _ in range(WARMUP + 1):
         trainer.step()
+    trainer.flush_stats()
+    wanted = trainer.history[-1]["samples_per_ray"] * 2 * 32  # the last batch's samples
     cap = trainer.field.sample_capacity
-    cap.capacity = 64  # far below the few thousand samples a batch wants
+    # below what a batch wants, with room for some pixels' two rays (rays take their offsets
+    # in no fixed order, so a pixel keeps both with about the kept share squared)
+    small = cap.capacity = max(16, int(0.6 * wanted))
     stats = [trainer.step() for _ in range(WARMUP + 2)]
     trainer.flush_stats()
     assert all(0 < s["dropped"] < 1 for s in stats)
-    assert all(s["samples_per_ray"] * 2 * 32 <= 64 + 1e-3 for s in stats)
+    assert all(s["samples_per_ray"] * 2 * 32 <= small + 1e-3 for s in stats)
     while trainer.step_count % trainer.field.options.occupancy.update_every:
         trainer.step()
     for _ in range(2 * trainer.field.options.occupancy.update_every):
         trainer.step()  # the want copied at one refresh is applied at the next
-    assert cap.capacity > 64
+    assert cap.capacity > small
 
 
 def test_graph_mode_falls_back_where_a_step_cannot_be_captured(scene, tmp_path):
