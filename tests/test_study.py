@@ -200,6 +200,29 @@ def test_ablation_study_trains_each_variant_with_its_knobs(tiny_scene, tmp_path)
     assert "| short | 1..1 |" in md and "1 % of 100" in md
 
 
+def test_ablation_keeps_the_reference_windows_unless_set(tiny_scene):
+    """On a CPU the fast preset draws longer windows (fastenerf.cpu_preset); the ablation's
+    full model is the reference's U{1..5 %}, and a --set window still wins."""
+    import argparse
+
+    from benchmarks.error_vs_time import parse_sets
+    from benchmarks.study import level_config
+    from fastenerf.data.formats.native import load_scene
+
+    scene = load_scene(tiny_scene)
+    args = argparse.Namespace(seed=0, steps=1, budget_s=None)
+
+    def win(study_name, level, *sets):
+        base = parse_sets(list(sets), ["ngp"])["ngp"]
+        cfg = level_config(study_name, level, scene, args, "cpu", base)
+        return cfg.resolved(scene.config, "cpu").win_max
+
+    assert win("ablation", "full") == win("ablation", "no-negatives") == 5  # 5 % of 100 views
+    assert win("pose-error", 0.0) == 20  # the CPU preset's 20 %
+    assert win("ablation", "full", "win_max=7") == 7
+    assert win("ablation", "long") == 5
+
+
 def test_break_location_and_window_scaling():
     b = lv.supplement_break("pose-error")
     assert (b["largest_drop"]["from"], b["largest_drop"]["to"]) == (0.1, 1.0)
