@@ -44,7 +44,7 @@ import torch
 from torch import nn
 
 from .render import generate_rays
-from .se3 import mean_world_rotation, relative_angle_deg, so3_exp
+from .se3 import mean_world_rotation, relative_angle_deg, so3_exp, so3_log
 
 GAUGES = ("mean", "first", "none")
 
@@ -269,6 +269,10 @@ class PoseRefiner(nn.Module):
             vals["pose_gauge_deg"] = relative_angle_deg(
                 W, torch.eye(3, dtype=W.dtype, device=W.device)
             )
+            # W itself (radians, a rotation vector), so a study can score its test views
+            # turned by it (benchmarks/study_report.py, BARF's aligned protocol)
+            for axis, w in zip("xyz", so3_log(W).unbind(), strict=True):
+                vals[f"pose_gauge_w{axis}"] = w
             vals["pose_error_aligned_deg"] = mean(relative_angle_deg(R, W @ true[:, :3, :3]))
         return _stacked(vals, on_device)
 

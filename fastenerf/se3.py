@@ -51,6 +51,22 @@ def rotation_angle(R: torch.Tensor) -> torch.Tensor:
     return torch.atan2(s, c)
 
 
+def so3_log(R: torch.Tensor) -> torch.Tensor:
+    """Rotation vectors w (..., 3), radians, of rotation matrices R (..., 3, 3) with angles
+    below π: so3_exp(so3_log(R)) = R. The axis comes from R's skew part, whose size is
+    sin(angle), so near π (sin → 0) it is ill-conditioned."""
+    v = 0.5 * torch.stack(
+        [R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]],
+        -1,
+    )
+    s = v.norm(dim=-1, keepdim=True)
+    angle = rotation_angle(R).unsqueeze(-1)
+    # angle / sin(angle) -> 1 at 0: its series below 1e-4 rad, where s carries no digits
+    small = angle < 1e-4
+    scale = torch.where(small, 1.0 + angle * angle / 6.0, angle / torch.where(small, 1.0, s))
+    return v * scale
+
+
 def relative_angle_deg(R_a: torch.Tensor, R_b: torch.Tensor) -> torch.Tensor:
     """Geodesic angle between rotations R_a, R_b (..., 3, 3), degrees (...)."""
     return rotation_angle(R_a.transpose(-1, -2) @ R_b) * (180.0 / math.pi)

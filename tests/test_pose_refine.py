@@ -413,6 +413,10 @@ def test_refiner_reports_the_shared_turn_and_the_error_without_it():
     assert st["pose_error_deg"] == pytest.approx(0.5, abs=1e-4)
     assert st["pose_gauge_deg"] == pytest.approx(0.5, abs=1e-4)
     assert st["pose_error_aligned_deg"] < 1e-4
+    # W itself, as a rotation vector (radians): what a study turns its test views by
+    got = [st[f"pose_gauge_w{a}"] for a in "xyz"]
+    np.testing.assert_allclose(got, np.radians([0.3, 0.0, -0.4]), atol=1e-7)
+    assert "pose_gauge_wx" not in PoseRefiner(given, used, "mean").stats()  # no truth, no W
     jit = torch.from_numpy(
         Rotation.from_rotvec(np.radians(np.tile([0.2, 0, 0], (61, 1)))).as_matrix()
     )

@@ -55,6 +55,21 @@ def test_so3_exp_matches_scipy_from_tiny_to_large_angles():
     np.testing.assert_allclose(ang, np.rad2deg(np.geomspace(1e-9, 3.0, 40)), rtol=1e-9)
 
 
+def test_so3_log_inverts_so3_exp_from_zero_to_large_angles():
+    from fastenerf.se3 import so3_log
+
+    rng = np.random.default_rng(1)
+    axes = rng.normal(size=(40, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    w = axes * np.concatenate([[0.0], np.geomspace(1e-12, 3.0, 39)])[:, None]
+    got = so3_log(so3_exp(torch.from_numpy(w))).numpy()
+    np.testing.assert_allclose(got, w, atol=1e-12, rtol=1e-9)
+    np.testing.assert_allclose(
+        got, Rotation.from_matrix(so3_exp(torch.from_numpy(w)).numpy()).as_rotvec(), atol=1e-12
+    )
+    assert np.isfinite(got).all()
+
+
 def test_so3_exp_gradient_is_finite_at_zero():
     """Every correction starts at ω = 0, where the textbook sin θ / θ has a NaN gradient."""
     w = torch.zeros(4, 3, dtype=torch.float64, requires_grad=True)

@@ -12,6 +12,7 @@ import json
 import math
 
 import imageio.v3 as iio
+import numpy as np
 import pytest
 
 from fastenerf.cli import main as cli_main
@@ -124,7 +125,13 @@ def test_pose_studies_apply_the_angle_they_report(angle_studies, name):
     if name == "pose-error":
         assert "27.43" in md and "18.11" in md and "between 0.1° and 1°" in md
         assert "| 1° | 1 / 1 | no refinement |" in md and "after the prior" not in md
+        assert all(r["psnr_aligned"] is None for r in rows.values())  # nothing learnt
+        assert "PSNR, aligned" not in md
         return
+    # a refined level with true poses to compare with (a perturbed one) is also scored with
+    # its test views turned by the learnt shared turn
+    assert math.isfinite(rows[1.0]["psnr_aligned"])
+    assert "PSNR, aligned |" in md and "BARF's protocol" in md
     # mount-error: one camera-frame axis, refined back with the shared row; no supplement
     assert len(m["axis"]) == 3 and abs(math.hypot(*m["axis"]) - 1.0) < 1e-9
     assert run_config(out, "mount-1deg")["perturbation"]["pose"] is None
@@ -221,6 +228,25 @@ def test_ablation_keeps_the_reference_windows_unless_set(tiny_scene):
     assert win("pose-error", 0.0) == 20  # the CPU preset's 20 %
     assert win("ablation", "full", "win_max=7") == 7
     assert win("ablation", "long") == 5
+
+
+def test_turned_views_turn_each_camera_about_its_centre(tiny_scene):
+    import torch
+
+    from benchmarks.study_report import learnt_gauge, turned_views
+    from fastenerf.data.formats.native import load_scene
+    from fastenerf.evaluate import make_eval_set
+    from fastenerf.se3 import so3_exp
+
+    ev = make_eval_set(load_scene(tiny_scene), 3, 0.125)
+    assert learnt_gauge(None) is None and learnt_gauge({"pose_gauge_wx": 0.1}) is None
+    w = learnt_gauge({"pose_gauge_wx": 0.01, "pose_gauge_wy": 0.0, "pose_gauge_wz": -0.02})
+    turned = turned_views(ev, w)
+    W = so3_exp(torch.from_numpy(w)).numpy()
+    np.testing.assert_allclose(turned.c2w[:, :3, 3], ev.c2w[:, :3, 3])  # centres kept
+    np.testing.assert_allclose(turned.c2w[:, :3, :3], W @ ev.c2w[:, :3, :3], atol=1e-15)
+    assert turned.gt is ev.gt and not np.allclose(turned.c2w, ev.c2w)
+    np.testing.assert_allclose(turned_views(ev, np.zeros(3)).c2w, ev.c2w)
 
 
 def test_break_location_and_window_scaling():
