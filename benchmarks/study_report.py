@@ -3,6 +3,7 @@ breaks), and the files it writes (JSON, plot, image grid, Markdown beside the su
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ from benchmarks.study_levels import (
 from fastenerf.evaluate import EvalSet, evaluate_field
 from fastenerf.io import atomic_path, write_image, write_json
 from fastenerf.run import CHECKPOINT, read_progress
+from fastenerf.se3 import so3_exp
 
 EVAL_RECORD = "study_eval.json"  # in a level's run folder: its final evaluation
 VIEW_TILE = "study_view.png"  # and the grid's view of it (colour-corrected render)
@@ -79,10 +81,6 @@ def turned_views(ev: EvalSet, gauge: np.ndarray) -> EvalSet:
     """`ev` with every test camera turned by W = exp(gauge) about its own centre, as the
     learnt training cameras are (BARF's aligned protocol: the scene is learnt in their frame).
     """
-    import dataclasses
-
-    from fastenerf.se3 import so3_exp
-
     W = so3_exp(torch.from_numpy(gauge)).numpy()
     c2w = ev.c2w.copy()
     c2w[:, :3, :3] = W @ ev.c2w[:, :3, :3]

@@ -6,6 +6,7 @@ run's loss is that shared turn. Usage: python gauge_eval.py RUN SCENE_DIR"""
 import dataclasses
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -23,8 +24,9 @@ from fastenerf.train_state import restore
 def main(run: str, scene_dir: str) -> None:
     conf = json.loads((Path(run) / "config.json").read_text())["train"]
     scene = load_scene_dir(scene_dir)
-    tr = Trainer(scene, TrainConfig.from_dict(conf), Path("/tmp/gauge_eval_run"))
-    restore(tr, load_checkpoint(Path(run) / "checkpoint.pt"))
+    with tempfile.TemporaryDirectory() as tmp:  # the trainer's own folder, not the run's
+        tr = Trainer(scene, TrainConfig.from_dict(conf), Path(tmp))
+        restore(tr, load_checkpoint(Path(run) / "checkpoint.pt"))
     pr = tr.selfcal.poses
     with torch.no_grad():
         d = pr.corrections().double()
@@ -42,4 +44,10 @@ def main(run: str, scene_dir: str) -> None:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        print("gauge_eval.py: error: usage: gauge_eval.py RUN SCENE_DIR", file=sys.stderr)
+        sys.exit(2)
+    if not (Path(sys.argv[1]) / "checkpoint.pt").is_file():
+        print(f"gauge_eval.py: error: {sys.argv[1]}: no checkpoint.pt", file=sys.stderr)
+        sys.exit(2)
     main(sys.argv[1], sys.argv[2])

@@ -50,5 +50,19 @@ def main(run_a: str, scene_dir: str, out: str, steps: int = 3000) -> None:
     print(json.dumps({"psnr": fe["psnr"], "ssim": fe["ssim"], "self_calibration": corr}))
 
 
+def fail(msg: str) -> None:
+    print(f"restart_field.py: error: {msg}", file=sys.stderr)
+    sys.exit(2)
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], sys.argv[3], *(int(a) for a in sys.argv[4:]))
+    if len(sys.argv) not in (4, 5):
+        fail("usage: restart_field.py RUN_A SCENE_DIR OUT [STEPS]")
+    a = Path(sys.argv[1])
+    if not ((a / "config.json").is_file() and (a / "checkpoint.pt").is_file()):
+        fail(f"{a}: no config.json and checkpoint.pt (a finished refined run)")
+    if Path(sys.argv[3]).exists():
+        fail(f"{sys.argv[3]} exists: give a new folder (nothing was written)")
+    if len(sys.argv) == 5 and not (sys.argv[4].isdigit() and int(sys.argv[4]) > 0):
+        fail(f"STEPS {sys.argv[4]!r} is not a positive whole number")
+    main(sys.argv[1], sys.argv[2], sys.argv[3], *(int(x) for x in sys.argv[4:]))
