@@ -4,7 +4,8 @@ On a GPU a step is ~256k samples through a 16-level, 2^19-row hash grid; a CPU r
 kernels on one thread and the MLPs on a core or two, so every size is cut to what the CPU's
 step can afford (measured with `benchmarks.cpu_preset`, figures in benchmarks/RESULTS.md):
 fewer, smaller hash levels, narrower MLPs, a coarse occupancy grid, longer marching steps and
-fewer rays per step, and (fast preset, synthetic scenes) longer event windows.
+fewer rays per step (the fast preset's longer event windows are not the CPU's alone:
+`fastenerf.config.FAST_WINDOW_FRACTION`).
 `TrainConfig.resolved` applies it for ngp on a CPU device, to the options the user left unset,
 so it is recorded in the run's config.json; GPU runs never see it.
 """
@@ -29,11 +30,6 @@ NGP_CPU_OPTIONS: dict[str, Any] = {
 NGP_CPU_DIAGONAL_STEPS = 64
 # Pixels per step (each rendered at the window's start and end).
 NGP_CPU_RAYS = 256
-# Longest event window of the fast preset on synthetic scenes, as a fraction of the loop (the
-# reference's 0.05 elsewhere): a CPU run's few thousand steps of 256 rays learn faster from
-# windows that span more of the loop (every built-in scene and a mesh scene measured:
-# benchmarks/RESULTS.md, the twenty-second session).
-NGP_CPU_WINDOW_FRACTION = 0.2
 
 
 def cpu_dt_min(aabb, cylinder=None) -> float:

@@ -6,6 +6,7 @@ import pytest
 
 from fastenerf.backends import get_option, parse_options
 from fastenerf.config import (
+    FAST_WINDOW_FRACTION,
     CylinderConfig,
     IntrinsicsConfig,
     SceneConfig,
@@ -17,7 +18,6 @@ from fastenerf.cpu_preset import (
     NGP_CPU_DIAGONAL_STEPS,
     NGP_CPU_OPTIONS,
     NGP_CPU_RAYS,
-    NGP_CPU_WINDOW_FRACTION,
     cpu_dt_min,
 )
 
@@ -70,20 +70,24 @@ def test_gpu_and_vanilla_untouched():
     assert v.backend_options == {} and v.rays_per_step == 512
 
 
-def test_longer_windows_only_for_the_fast_preset_on_a_cpu_and_synthetic_scenes():
+def test_longer_windows_for_the_fast_preset_on_synthetic_scenes():
     import dataclasses
 
     synth = dataclasses.replace(scene(), n_views=1000)
     real = dataclasses.replace(synth, kind="real")
     fast = train_preset("fast", "ngp")
-    assert fast.resolved(synth, "cpu").win_max == round(NGP_CPU_WINDOW_FRACTION * 1000) == 200
-    assert fast.resolved(synth, "cuda:0").win_max == 50  # the GPU keeps the reference's
+    refine = train_preset("fast", "ngp", refine_poses=True)
+    assert fast.resolved(synth, "cpu").win_max == round(FAST_WINDOW_FRACTION * 1000) == 200
+    assert fast.resolved(synth, "cuda:0").win_max == 200
+    assert refine.resolved(synth, "cpu").win_max == 200
+    assert refine.resolved(synth, "cuda:0").win_max == 50  # measured worse on a GPU: reference's
     assert fast.resolved(real, "cpu").win_max == 100  # real scenes: not measured, reference's
-    assert train_preset("eventnerf", "ngp").resolved(synth, "cpu").win_max == 50
+    assert fast.resolved(real, "cuda:0").win_max == 100
+    assert train_preset("eventnerf", "ngp").resolved(synth, "cuda:0").win_max == 50
     assert TrainConfig(backend="vanilla").resolved(synth, "cpu").win_max == 50
-    assert train_preset("fast", "ngp", win_max=30).resolved(synth, "cpu").win_max == 30
-    c = fast.resolved(synth, "cpu")
-    assert c.resolved(synth, "cpu").win_max == 200  # idempotent
+    assert train_preset("fast", "ngp", win_max=30).resolved(synth, "cuda:0").win_max == 30
+    c = fast.resolved(synth, "cuda:0")
+    assert c.resolved(synth, "cuda:0").win_max == 200  # idempotent
 
 
 def test_dt_min_follows_the_clipped_box():
