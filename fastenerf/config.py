@@ -153,6 +153,10 @@ class TrainConfig:
     refine_windows_per_step: int | None = field(default=None, metadata={"min": 1, "max": 65536})
     """While refining poses, at least this many windows per step (each row needs visits).
     Default: 16 with smooth_poses, else 64 (`refine_defaults`)."""
+    refine_win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
+    """While refining poses, the corrections learn only from windows up to this many views
+    (longer ones still render through the corrected poses, without a pose gradient); None:
+    from every window. For long field windows with the pose gradient of short ones."""
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
     """adam: one Adam over every pose row; row-adam: lazy, a row steps when a batch sees it."""
     refine_beta1: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})

@@ -160,7 +160,25 @@ class PoseCalibration:
         rays_o, rays_d, self.seen = self.refiner.rays_and_rows(
             batch.dirs, batch.pose_idx, batch.rays_d
         )
-        return rays_o, rays_d
+        if self.cfg.refine_win_max is None:
+            return rays_o, rays_d
+        return self._short_windows_only(batch.pose_idx, rays_o, rays_d)
+
+    def _short_windows_only(
+        self, pose_idx: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The rays of windows longer than refine_win_max views, detached: same values, no
+        pose gradient; `seen` keeps only the rows a short window touched (no host read).
+        pose_idx: (2B,) grid rows (t0 rows, then t1 rows); rays_o, rays_d: (2B, 3)."""
+        b = pose_idx.shape[0] // 2
+        long = (pose_idx[b:] - pose_idx[:b]) > self.cfg.refine_win_max
+        long = long.repeat(2)[:, None]
+        short = torch.zeros(len(self.refiner.base), dtype=torch.int32, device=pose_idx.device)
+        short.scatter_add_(0, pose_idx, (~long[:, 0]).to(torch.int32))
+        self.seen = self.refiner.param_rows(short > 0)
+        return torch.where(long, rays_o.detach(), rays_o), torch.where(
+            long, rays_d.detach(), rays_d
+        )
 
     def share_gradient(self) -> None:
         """In the shared phase, the rows' summed gradient for every row (before either

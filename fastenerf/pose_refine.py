@@ -226,6 +226,10 @@ class PoseRefiner(nn.Module):
         g.copy_(g.sum(0, keepdim=True) * self.mask)
         return self.used
 
+    def param_rows(self, seen: torch.Tensor) -> torch.Tensor:
+        """The grid rows seen (G,) bool as the rows of `delta` they step (`_param_rows`)."""
+        return self._param_rows(seen)
+
     def _param_rows(self, seen: torch.Tensor) -> torch.Tensor:
         """The grid rows seen (G,) as rows of `delta`: shared, (1,) whether any was; with
         knots, (K,) the knots a seen row takes a weight from (on the device, no host read)."""

@@ -269,6 +269,59 @@ def test_zero_corrections_give_the_samplers_rays_bit_for_bit(ball):
     assert not used_rows(sampler)[-1]  # a loop's last grid row is its first
 
 
+def test_refine_win_max_takes_the_pose_gradient_from_short_windows_only(ball):
+    """Rows only long windows touched get no gradient and are not stepped; the rays' values and
+    the gradient of rows only short windows touched are what they are without the option."""
+    from fastenerf.pose_calibration import PoseCalibration
+
+    def gen(seed):
+        return torch.Generator().manual_seed(seed)
+
+    cfg, rig, events = ball
+    index = EventIndex(events, 0.25, 0.25, t_start=0, t_end=cfg.t_end_us, loop=True)
+    windows = WindowSampler(cfg.n_views, 0, cfg.t_end_us, 1, 4, seed=3)
+    sampler = RaySampler(
+        index,
+        rig,
+        windows,
+        rays_per_step=256,
+        windows_per_step=16,
+        neg_ratio=0.1,
+        seed=3,
+        with_poses=True,
+        use_kernel=False,
+    )
+    batch = sampler.sample()
+    b = len(batch.target)
+    length = batch.pose_idx[b:] - batch.pose_idx[:b]
+    assert (length <= 2).any() and (length > 2).any()  # both kinds in the batch
+    g = len(sampler.grid_c2w)
+    touched = {
+        kind: torch.zeros(g, dtype=torch.bool).index_fill_(0, batch.pose_idx[m.repeat(2)], True)
+        for kind, m in (("short", length <= 2), ("long", length > 2))
+    }
+    only_short = touched["short"] & ~touched["long"]
+    only_long = touched["long"] & ~touched["short"]
+    assert only_short.any() and only_long.any()
+    weights = torch.randn(2, len(batch.pose_idx), 3, generator=gen(0))
+    out = {}
+    for win in (None, 2):
+        pc = PoseCalibration(
+            TrainConfig(refine_poses=True, refine_win_max=win), sampler, BallField()
+        )
+        with torch.no_grad():
+            pc.refiner.delta.copy_(0.01 * torch.randn(pc.refiner.delta.shape, generator=gen(1)))
+        o, d = pc.rays(batch)
+        ((o * weights[0]).sum() + (torch.sin(d) * weights[1]).sum()).backward()
+        out[win] = (o.detach(), d.detach(), pc.refiner.delta.grad.clone(), pc.seen.clone())
+    (o0, d0, g0, seen0), (o1, d1, g1, seen1) = out[None], out[2]
+    assert torch.equal(o0, o1) and torch.equal(d0, d1)
+    assert torch.equal(seen0, touched["short"] | touched["long"])
+    assert torch.equal(seen1, touched["short"])
+    assert g1[only_long].abs().max() == 0 and g0[only_long, :3].abs().min() > 0  # turns only
+    assert torch.equal(g1[only_short], g0[only_short]) and g1[only_short, :3].abs().min() > 0
+
+
 # --------------------------------------------------------------------------------- thresholds
 
 
