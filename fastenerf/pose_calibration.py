@@ -170,8 +170,10 @@ class PoseCalibration:
         """The rays of windows longer than refine_win_max views, detached: same values, no
         pose gradient; `seen` keeps only the rows a short window touched (no host read).
         pose_idx: (2B,) grid rows (t0 rows, then t1 rows); rays_o, rays_d: (2B, 3)."""
-        b = pose_idx.shape[0] // 2
-        long = (pose_idx[b:] - pose_idx[:b]) > self.cfg.refine_win_max
+        b, n = pose_idx.shape[0] // 2, len(self.refiner.base) - 1  # the n + 1 grid rows
+        views = pose_idx[b:] - pose_idx[:b]
+        views = torch.where(views < 0, views + n, views)  # a loop's t0 row wraps to its end
+        long = views > self.cfg.refine_win_max
         long = long.repeat(2)[:, None]
         short = torch.zeros(len(self.refiner.base), dtype=torch.int32, device=pose_idx.device)
         short.scatter_add_(0, pose_idx, (~long[:, 0]).to(torch.int32))

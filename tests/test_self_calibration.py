@@ -292,10 +292,9 @@ def test_refine_win_max_takes_the_pose_gradient_from_short_windows_only(ball):
         use_kernel=False,
     )
     batch = sampler.sample()
-    b = len(batch.target)
-    length = batch.pose_idx[b:] - batch.pose_idx[:b]
+    b, g = len(batch.target), len(sampler.grid_c2w)
+    length = torch.remainder(batch.pose_idx[b:] - batch.pose_idx[:b], g - 1)  # loop: g - 1 views
     assert (length <= 2).any() and (length > 2).any()  # both kinds in the batch
-    g = len(sampler.grid_c2w)
     touched = {
         kind: torch.zeros(g, dtype=torch.bool).index_fill_(0, batch.pose_idx[m.repeat(2)], True)
         for kind, m in (("short", length <= 2), ("long", length > 2))
@@ -320,6 +319,25 @@ def test_refine_win_max_takes_the_pose_gradient_from_short_windows_only(ball):
     assert torch.equal(seen1, touched["short"])
     assert g1[only_long].abs().max() == 0 and g0[only_long, :3].abs().min() > 0  # turns only
     assert torch.equal(g1[only_short], g0[only_short]) and g1[only_short, :3].abs().min() > 0
+
+
+def test_refine_win_max_counts_a_wrapped_windows_views(ball):
+    """On a loop a window's t0 row wraps to the end of the grid: (n - 2 -> 2) spans 4 views."""
+    from fastenerf.pose_calibration import PoseCalibration
+
+    cfg, rig, events = ball
+    index = EventIndex(events, 0.25, 0.25, t_start=0, t_end=cfg.t_end_us, loop=True)
+    windows = WindowSampler(cfg.n_views, 0, cfg.t_end_us, 1, 4)
+    kw = {"rays_per_step": 64, "windows_per_step": 4, "neg_ratio": 0.1}
+    sampler = RaySampler(index, rig, windows, **kw, with_poses=True, use_kernel=False)
+    n = len(sampler.grid_c2w) - 1
+    pc = PoseCalibration(TrainConfig(refine_poses=True, refine_win_max=2), sampler, BallField())
+    pose_idx = torch.tensor([n - 2, n - 1, 2, 1])  # windows (n-2 -> 2): 4 views, (n-1 -> 1): 2
+    rays = torch.zeros(4, 3, requires_grad=True)
+    o, _ = pc._short_windows_only(pose_idx, rays, rays)
+    assert [r.item() for r in torch.nonzero(pc.seen)[:, 0]] == [1, n - 1]
+    o.sum().backward()
+    assert rays.grad[:, 0].tolist() == [0.0, 1.0, 0.0, 1.0]
 
 
 # --------------------------------------------------------------------------------- thresholds
