@@ -1,12 +1,15 @@
 """The pose-sensitivity curves (pose_sensitivity.py's JSON lines) against the 2° runs' gaps.
-Usage (repository root): python benchmarks/results/h200_s35/scripts/plot_sensitivity.py"""
+Usage: python benchmarks/results/h200_s35/scripts/plot_sensitivity.py (from any folder)"""
 
 import json
+import sys
 from pathlib import Path
 
-from benchmarks.plots import plt, save_figure
+ROOT = Path(__file__).resolve().parents[4]  # the repository
+sys.path.insert(0, str(ROOT))
+from benchmarks.plots import plt, save_figure  # noqa: E402  (needs ROOT on the path)
 
-HERE = Path("benchmarks/results")
+HERE = ROOT / "benchmarks/results"
 CURVES = {  # label: (file, colour)
     "lattice, H200 (0°: 38.61 dB)": (HERE / "h200_s35/lattice_sensitivity.jsonl", "C0"),
     "lattice173, CPU (30.23 dB)": (HERE / "cpu_s35/lattice173_sensitivity.jsonl", "C1"),
@@ -19,6 +22,14 @@ RUNS = {
     "lattice173 2°, CPU 3000 steps": (0.2148, 25.88 - 29.96, "C1"),
     "shiny173 2°, CPU 3000 steps": (0.2510, 26.65 - 29.50, "C2"),
 }
+
+missing = [str(path) for path, _ in CURVES.values() if not path.is_file()]
+if missing:
+    print(
+        f"plot_sensitivity.py: error: {missing[0]}: no such file",
+        file=sys.stderr,
+    )
+    sys.exit(2)
 
 fig, ax = plt.subplots(figsize=(7, 4.5))
 for label, (path, colour) in CURVES.items():

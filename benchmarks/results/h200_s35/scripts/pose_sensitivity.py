@@ -15,6 +15,7 @@ import torch
 
 from benchmarks.curve import load_scene_dir
 from fastenerf.config import TrainConfig
+from fastenerf.errors import InputError
 from fastenerf.evaluate import evaluate_field, make_eval_set
 from fastenerf.run import load_checkpoint
 from fastenerf.se3 import so3_exp
@@ -53,12 +54,17 @@ def fail(msg: str) -> None:
 if __name__ == "__main__":
     if len(sys.argv) < 3:
         fail("usage: pose_sensitivity.py RUN SCENE_DIR [DEG ...]")
-    if not (Path(sys.argv[1]) / "checkpoint.pt").is_file():
-        fail(f"{sys.argv[1]}: no checkpoint.pt")
+    if not all((Path(sys.argv[1]) / f).is_file() for f in ("config.json", "checkpoint.pt")):
+        fail(f"{sys.argv[1]}: no config.json and checkpoint.pt (a finished run)")
+    if not Path(sys.argv[2]).is_dir():
+        fail(f"SCENE_DIR {sys.argv[2]} is not a folder")
     try:
         degs = [float(x) for x in sys.argv[3:]] or [0, 0.005, 0.01, 0.02, 0.04, 0.08, 0.16]
     except ValueError:
         fail(f"angles {sys.argv[3:]} are not all numbers (degrees)")
     if not all(np.isfinite(d) and d >= 0 for d in degs):
         fail(f"angles {degs} must be finite and >= 0 (degrees)")
-    main(sys.argv[1], sys.argv[2], degs)
+    try:
+        main(sys.argv[1], sys.argv[2], degs)
+    except InputError as e:  # a scene folder that is not one, a config that does not load
+        fail(str(e))
