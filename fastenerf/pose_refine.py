@@ -205,7 +205,7 @@ class PoseRefiner(nn.Module):
             o, d, seen = kernels.pose_rays(
                 self.row_delta(), self.base, self.mask, dirs, pose_idx, rays_d, centre
             )
-            return o, d, self._param_rows(seen)
+            return o, d, self.param_rows(seen)
         d = self.corrections()
         # index_select: its backward adds into the few rows a batch sees by atomics; advanced
         # indexing's (a sorted index_put) walks each row's thousands of duplicates serially
@@ -215,7 +215,7 @@ class PoseRefiner(nn.Module):
         rd = torch.einsum("nij,nj->ni", R, dirs.to(R.dtype).repeat(k, 1))
         seen = torch.zeros(len(self.base), dtype=torch.bool, device=o.device)
         seen[pose_idx] = True
-        return o.contiguous(), nn.functional.normalize(rd, dim=-1), self._param_rows(seen)
+        return o.contiguous(), nn.functional.normalize(rd, dim=-1), self.param_rows(seen)
 
     @torch.no_grad()
     def share_gradient(self) -> torch.Tensor:
@@ -227,10 +227,6 @@ class PoseRefiner(nn.Module):
         return self.used
 
     def param_rows(self, seen: torch.Tensor) -> torch.Tensor:
-        """The grid rows seen (G,) bool as the rows of `delta` they step (`_param_rows`)."""
-        return self._param_rows(seen)
-
-    def _param_rows(self, seen: torch.Tensor) -> torch.Tensor:
         """The grid rows seen (G,) as rows of `delta`: shared, (1,) whether any was; with
         knots, (K,) the knots a seen row takes a weight from (on the device, no host read)."""
         if self.interp is not None:
