@@ -156,7 +156,8 @@ class TrainConfig:
     refine_win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
     """While refining poses, the corrections learn only from windows up to this many views
     (longer ones still render through the corrected poses, without a pose gradient); None:
-    from every window. For long field windows with the pose gradient of short ones."""
+    from every window. For long field windows with the pose gradient of short ones, where the
+    poses are believed close: at 2° the long windows' field absorbs the pose error."""
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
     """adam: one Adam over every pose row; row-adam: lazy, a row steps when a batch sees it."""
     refine_beta1: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
@@ -312,7 +313,9 @@ class TrainConfig:
 # reference's 0.05 elsewhere): a run of seconds to minutes learns faster from windows that span
 # more of the loop (every built-in scene and a mesh scene, on a 2-core CPU and on an H100:
 # benchmarks/RESULTS.md, the twenty-second and twenty-third sessions). A GPU run that refines
-# poses keeps the reference's: there lattice at 2° ended 2.7 dB lower with them.
+# poses keeps the reference's: at 2° the long windows' field absorbs the pose error and the
+# poses stop higher, even with the pose gradient from short windows only (refine_win_max;
+# the twenty-fourth session).
 FAST_WINDOW_FRACTION = 0.2
 
 

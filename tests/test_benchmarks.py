@@ -522,6 +522,26 @@ def test_compare_runs_plots_one_panel_per_prefix_and_refuses_a_missing_folder(tm
     assert notes.read_text() == "mine"
 
 
+def test_compare_runs_plots_the_pose_error_and_refuses_a_run_without_it(tmp_path, capsys):
+    from benchmarks import compare_runs
+
+    pts = [{"train_s": t, "psnr": 30.0, "pose_error_deg": e} for t, e in ((1, 0.1), (2, 0.02))]
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "error_vs_time.json").write_text(json.dumps({"runs": [{"points": pts}]}))
+    assert compare_runs.load_points(tmp_path / "a", "pose_error_deg") == [(1, 0.1), (2, 0.02)]
+    out = tmp_path / "pose.png"
+    assert compare_runs.main([str(out), f"r={tmp_path / 'a'}", "--metric", "pose_error_deg"]) == 0
+    assert iio.imread(out).ndim == 3
+    for p in pts:
+        del p["pose_error_deg"]
+    (tmp_path / "a" / "error_vs_time.json").write_text(json.dumps({"runs": [{"points": pts}]}))
+    no = tmp_path / "no.png"
+    assert compare_runs.main([str(no), f"r={tmp_path / 'a'}", "--metric", "pose_error_deg"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "records no pose_error_deg" in err[0]
+    assert not no.exists()
+
+
 def test_gpu_runs60_bad_input_is_one_line_exit_2_and_leaves_out_alone(tmp_path):
     """benchmarks/gpu_runs60.sh refuses a missing DATA or RUNS, an existing OUT, an OUT it
     cannot make and a WAIT_READY that is no number, before it runs or writes anything."""
