@@ -158,6 +158,15 @@ class TrainConfig:
     (longer ones still render through the corrected poses, without a pose gradient); None:
     from every window. For long field windows with the pose gradient of short ones, where the
     poses are believed close: at 2° the long windows' field absorbs the pose error."""
+    refine_settle_px: float | None = field(default=None, metadata={"min": 1e-6, "max": 1e3})
+    """While refining poses, the field's windows lengthen to settle_win_max once the poses
+    settle: when the corrections' turns moved less than this many pixels (RMS over the poses,
+    at the focal length) over the last 5 % of the budget. Until then the field trains on
+    win_max (default: the reference's), and the corrections learn from windows up to
+    refine_win_max (default: win_max) throughout. None: off (`pose_settle`)."""
+    settle_win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
+    """The field's longest window once the poses settle (refine_settle_px), views. Default:
+    the fast preset's long windows, FAST_WINDOW_FRACTION of the loop (at least win_max)."""
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
     """adam: one Adam over every pose row; row-adam: lazy, a row steps when a batch sees it."""
     refine_beta1: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
@@ -239,6 +248,10 @@ class TrainConfig:
         _check(self.refine_shared_until == 0 or ok, where, "refine_shared_until", why)
         ok = self.refine_poses or not self.refine_shared
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
+        ok = self.refine_poses or self.refine_settle_px is None
+        _check(ok, where, "refine_settle_px", "needs refine_poses (it watches the corrections)")
+        ok = self.settle_win_max is None or self.refine_settle_px is not None
+        _check(ok, where, "settle_win_max", "needs refine_settle_px (when the windows lengthen)")
         k, shared = self.refine_knots, self.refine_shared or self.refine_shared_until > 0
         ok = k == 0 or (k >= 2 and not shared)
         _check(ok, where, "refine_knots", f"must be 0 or >= 2 and without refine_shared, got {k}")
@@ -268,12 +281,7 @@ class TrainConfig:
             else:
                 c.log_eps = 1e-5 if real else 0.1
         cpu_ngp = c.backend == "ngp" and not str(device).startswith("cuda")
-        if c.win_max is None:
-            longer = c.backend == "ngp" and c.preset == "fast" and not real
-            # A GPU run that refines poses keeps the reference's (FAST_WINDOW_FRACTION).
-            longer = longer and (cpu_ngp or not c.refine_poses)
-            fraction = FAST_WINDOW_FRACTION if longer else None
-            c.win_max = reference_win_max(scene.n_views, real, c.win_min, fraction)
+        c._resolve_windows(scene.n_views, real, cpu_ngp)
         if c.neg_ratio is None:
             c.neg_ratio = 0.05 if real else 0.1
         if c.distortion_weight is None:
@@ -300,6 +308,25 @@ class TrainConfig:
             c.minutes = 1.0
         c.device = str(device)
         return c.validate()
+
+    def _resolve_windows(self, n_views: int, real: bool, cpu_ngp: bool) -> None:
+        """win_max and, where the windows lengthen once the poses settle, settle_win_max and
+        refine_win_max: the `None`s replaced in place (`resolved`'s copy)."""
+        settle = self.refine_poses and self.refine_settle_px is not None
+        if self.win_max is None:
+            longer = self.backend == "ngp" and self.preset == "fast" and not real
+            # A GPU run that refines poses keeps the reference's (FAST_WINDOW_FRACTION), and
+            # so does every run whose windows lengthen once the poses settle.
+            longer = longer and (cpu_ngp or not self.refine_poses) and not settle
+            fraction = FAST_WINDOW_FRACTION if longer else None
+            self.win_max = reference_win_max(n_views, real, self.win_min, fraction)
+        if settle:
+            if self.settle_win_max is None:
+                fraction = FAST_WINDOW_FRACTION
+                self.settle_win_max = reference_win_max(n_views, real, self.win_min, fraction)
+            self.settle_win_max = max(self.settle_win_max, self.win_max)
+            if self.refine_win_max is None:
+                self.refine_win_max = self.win_max
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

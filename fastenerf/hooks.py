@@ -165,6 +165,8 @@ CALIBRATION_KEYS = (
     "pose_correction_max_deg",
     "pose_error_deg",
     "pose_error_aligned_deg",
+    "pose_settle_px",
+    "field_win_max",
     "threshold_pos",
     "threshold_neg",
     "threshold_ratio",

@@ -20,6 +20,7 @@ from .config import TrainConfig
 from .errors import InputError
 from .fields.base import Field
 from .pose_refine import PoseRefiner, RowAdam
+from .pose_settle import PoseSettle
 from .sampling import RayBatch, RaySampler
 
 ADAM_BETAS = (0.9, 0.999)
@@ -51,10 +52,16 @@ def pose_lr(cfg: TrainConfig, progress: float) -> float:
         return 0.0
     start = cfg.refine_start
     if 0 < cfg.refine_shared_until <= progress:
-        start = max(start, cfg.refine_shared_until)
+        start = pose_lr_start(cfg)
     r = (progress - start) / (1.0 - start)
     ramp = 1.0 if cfg.refine_warmup <= 0 else min(1.0, r / cfg.refine_warmup)
     return ramp * cfg.refine_lr * (cfg.refine_lr_final / cfg.refine_lr) ** r
+
+
+def pose_lr_start(cfg: TrainConfig) -> float:
+    """Where the per-pose schedule of `pose_lr` starts (budget fraction): refine_start, or the
+    end of the shared phase (refine_shared_until) when that is later."""
+    return max(cfg.refine_start, cfg.refine_shared_until)
 
 
 def row_gate(cfg: TrainConfig, prior_turn_deg: float | None) -> float:
@@ -122,6 +129,11 @@ class PoseCalibration:
             self.optimizer = RowAdam([group], cfg.refine_lr, betas, ADAM_EPS, **gate)
         else:
             self.adam_groups.append(group)
+        self.settle: PoseSettle | None = None  # lengthens the windows (refine_settle_px)
+        if cfg.refine_settle_px is not None:
+            start = pose_lr_start(cfg) + cfg.refine_warmup * (1.0 - pose_lr_start(cfg))
+            fx = sampler.rig.intrinsics.fx
+            self.settle = PoseSettle(cfg, sampler.windows, fx, start)
         self.seen: torch.Tensor | None = None  # (G,) bool rows the last batch saw
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
         self.sharing = False  # the poses share one correction now (refine_shared_until)
@@ -136,11 +148,16 @@ class PoseCalibration:
         return was and not self.sharing
 
     def window(self, progress: float) -> None:
-        """The coarse-to-fine encoding window at training `progress` in [0, 1]."""
+        """The coarse-to-fine encoding window at training `progress` in [0, 1], and the event
+        windows' length once the poses settle (`pose_settle`; one host read per look)."""
         c = self.cfg
         self.c2f = set_encoding_window(
             self.field, progress, c.refine_c2f_start, c.refine_c2f_end, c.refine_c2f_mode
         )
+        if self.settle is not None and self.settle.due(progress):
+            with torch.no_grad():
+                turns = self.refiner.corrections()[self.refiner.used, :3]
+            self.settle.look(progress, turns)
 
     @torch.no_grad()
     def forget_moments(self, opt: torch.optim.Optimizer) -> None:
@@ -221,6 +238,8 @@ class PoseCalibration:
         """The refiner's stats (`PoseRefiner.stats`) and c2f, the schedule's fraction done."""
         out: dict[str, Any] = self.refiner.stats(on_device)
         out["c2f"] = 1.0 if self.c2f is None else self.c2f
+        if self.settle is not None:
+            out.update(self.settle.stats())
         return out
 
     def report(self) -> dict[str, Any]:
@@ -232,4 +251,5 @@ class PoseCalibration:
             "gate": self.gate,
             "gauge": self.refiner.gauge,
             "corrections": "world-frame [rotation vector (rad), shift (world units)]",
+            **({} if self.settle is None else {"settled_at": self.settle.settled_at}),
         }

@@ -92,12 +92,26 @@ class WindowSampler:
             j0 = np.maximum(j0, 0)
         return j0.astype(np.int64), j1.astype(np.int64)
 
+    def set_win_max(self, win_max: int) -> None:
+        """Draw windows up to `win_max` views from now on (capped at the stream, as at
+        construction); lengths drawn once at load are drawn again."""
+        if win_max < self.win_min:
+            raise InputError(f"window lengths: need win_max >= win_min ({self.win_min})")
+        self.win_max = int(min(win_max, self.n_views))
+        if self.lengths is not None:
+            self.lengths = self.rng.integers(self.win_min, self.win_max + 1, self.n_views + 1)
+
     def state_dict(self) -> dict:
-        return {"rng": self.rng.bit_generator.state, "lengths": self.lengths}
+        return {
+            "rng": self.rng.bit_generator.state,
+            "lengths": self.lengths,
+            "win_max": self.win_max,
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.rng.bit_generator.state = state["rng"]
         self.lengths = state["lengths"]
+        self.win_max = int(state.get("win_max", self.win_max))  # set_win_max may have moved it
 
 
 def to_device(a, device: torch.device) -> torch.Tensor:
@@ -399,9 +413,12 @@ class RaySampler:
     def state_dict(self) -> dict:
         """The RNG states the current block was drawn from and how many of it were used, so a
         resume redraws the same block and goes on where it stopped."""
+        # windows_now: the lengths as they are now (`WindowSampler.set_win_max` may have moved
+        # them since the block was drawn), restored once the block is drawn again
+        now = {"windows_now": self.windows.state_dict()}
         if not self._block:
-            return {**self._rng_state(), "position": 0}
-        return {**self._block_state, "position": self.prefetch - len(self._block)}
+            return {**self._rng_state(), "position": 0, **now}
+        return {**self._block_state, "position": self.prefetch - len(self._block), **now}
 
     def load_state_dict(self, state: dict) -> None:
         self.windows.load_state_dict(state["windows"])
@@ -411,3 +428,5 @@ class RaySampler:
         if position > 0:
             self._block_state = self._rng_state()
             self._block = self._draw_block(self.prefetch)[position:]
+        if "windows_now" in state:
+            self.windows.load_state_dict(state["windows_now"])

@@ -261,6 +261,7 @@ class SelfCalibration:
             "skipped_steps": self.skipped_steps,
             # a resume must still see the switch and forget
             "sharing": pc is not None and pc.sharing,
+            "settle": None if pc is None or pc.settle is None else pc.settle.state_dict(),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -274,6 +275,8 @@ class SelfCalibration:
         self.skipped_steps = int(state.get("skipped_steps", 0))
         if self.pose_cal is not None:
             self.pose_cal.sharing = bool(state.get("sharing", False))
+            if self.pose_cal.settle is not None:
+                self.pose_cal.settle.load_state_dict(state.get("settle"))
 
 
 def measured_ratio(scene, cfg: TrainConfig) -> float | None:

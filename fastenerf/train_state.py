@@ -64,10 +64,8 @@ def trainer_state(tr: Trainer) -> dict[str, Any]:
     if torch.cuda.is_available():
         rng["cuda"] = torch.cuda.get_rng_state_all()
     sampler = tr.sampler.state_dict()
-    lengths = sampler["windows"]["lengths"]
-    # a new dict: the sampler's own state must not change when a checkpoint is written
-    lengths = None if lengths is None else torch.from_numpy(lengths)
-    sampler = {**sampler, "windows": {**sampler["windows"], "lengths": lengths}}
+    # new dicts: the sampler's own state must not change when a checkpoint is written
+    sampler = {**sampler, **{k: _windows_saved(sampler[k]) for k in WINDOW_STATES if k in sampler}}
     state = {
         "format": "fastenerf-checkpoint",
         "version": CHECKPOINT_VERSION,
@@ -155,18 +153,10 @@ def restore(tr: Trainer, ck: dict) -> None:
         tr.optimizer.load_state_dict(ck["optimizer"])
         if tr.selfcal is not None:
             tr.selfcal.load_state_dict(ck["self_calibration"])
-        windows = ck["sampler"]["windows"]
-        lengths = windows["lengths"]
-        tr.sampler.load_state_dict(
-            {
-                "windows": {
-                    "rng": windows["rng"],
-                    "lengths": None if lengths is None else lengths.cpu().numpy(),
-                },
-                "gen": ck["sampler"]["gen"],
-                "position": int(ck["sampler"].get("position", 0)),
-            }
-        )
+        saved = ck["sampler"]
+        state = {k: _windows_loaded(saved[k]) for k in WINDOW_STATES if k in saved}
+        state.update(gen=saved["gen"], position=int(saved.get("position", 0)))
+        tr.sampler.load_state_dict(state)
         rng = ck["rng"]
         torch.set_rng_state(rng["torch"])
         random.setstate(rng["python"])
@@ -214,3 +204,19 @@ def _np_state_to_torch(state: tuple) -> dict:
 
 def _np_state_from_torch(d: dict) -> tuple:
     return (d["name"], d["keys"].numpy().astype(np.uint32), d["pos"], d["has_gauss"], d["cached"])
+
+
+# The sampler's window states a checkpoint holds: the current block's, and the lengths now.
+WINDOW_STATES = ("windows", "windows_now")
+
+
+def _windows_saved(w: dict) -> dict:
+    """A WindowSampler state for torch.save: lengths as a tensor (a new dict)."""
+    lengths = w["lengths"]
+    return {**w, "lengths": None if lengths is None else torch.from_numpy(lengths)}
+
+
+def _windows_loaded(w: dict) -> dict:
+    """The inverse of `_windows_saved`: lengths back as a numpy array."""
+    lengths = w["lengths"]
+    return {**w, "lengths": None if lengths is None else lengths.cpu().numpy()}

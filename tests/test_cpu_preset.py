@@ -20,6 +20,7 @@ from fastenerf.cpu_preset import (
     NGP_CPU_RAYS,
     cpu_dt_min,
 )
+from fastenerf.errors import InputError
 
 
 def scene(cylinder=None) -> SceneConfig:
@@ -88,6 +89,26 @@ def test_longer_windows_for_the_fast_preset_on_synthetic_scenes():
     assert train_preset("fast", "ngp", win_max=30).resolved(synth, "cuda:0").win_max == 30
     c = fast.resolved(synth, "cuda:0")
     assert c.resolved(synth, "cuda:0").win_max == 200  # idempotent
+
+
+def test_windows_that_lengthen_once_the_poses_settle_start_at_the_reference_length():
+    import dataclasses
+
+    synth = dataclasses.replace(scene(), n_views=1000)
+    settle = train_preset("fast", "ngp", refine_poses=True, refine_settle_px=0.05)
+    for device in ("cpu", "cuda:0"):  # the CPU too: without the option it starts long there
+        c = settle.resolved(synth, device)
+        assert (c.win_max, c.settle_win_max, c.refine_win_max) == (50, 200, 50)
+        assert c.resolved(synth, device).settle_win_max == 200  # idempotent
+    mine = dataclasses.replace(settle, win_max=30, settle_win_max=20, refine_win_max=10)
+    c = mine.resolved(synth, "cuda:0")  # never shorter than where it starts
+    assert (c.win_max, c.settle_win_max, c.refine_win_max) == (30, 30, 10)
+    plain = train_preset("fast", "ngp", refine_poses=True).resolved(synth, "cuda:0")
+    assert plain.settle_win_max is None and plain.refine_win_max is None
+    with pytest.raises(InputError, match="'refine_settle_px' needs refine_poses"):
+        train_preset("fast", "ngp", refine_settle_px=0.05).validate()
+    with pytest.raises(InputError, match="'settle_win_max' needs refine_settle_px"):
+        train_preset("fast", "ngp", refine_poses=True, settle_win_max=100).validate()
 
 
 def test_dt_min_follows_the_clipped_box():

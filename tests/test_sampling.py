@@ -66,6 +66,34 @@ def test_load_time_lengths_are_fixed_per_end_view():
         WindowSampler(50, 0, 50_000, 5, 2)
 
 
+@pytest.mark.parametrize("redraw", ["step", "load"])
+def test_lengthened_windows_draw_longer_and_resume_mid_block_exactly(
+    random_stream, scene_config, redraw
+):
+    """set_win_max changes the lengths from the next block on; a checkpoint taken between
+    the change and that block resumes with the block as drawn (short) and the next as the
+    run went on (long), bit for bit."""
+    cfg = scene_config(16, 12, t_end_us=100_000, n_views=50)
+    stream = random_stream(3000, 16, 12, t_max=99_999)
+    rs, _, ws, _ = make_sampler(stream, cfg, use_kernel=False, prefetch=4, win_max=3, redraw=redraw)
+    [rs.sample() for _ in range(2)]
+    ws.set_win_max(40)
+    assert ws.win_max == 40
+    state = rs.state_dict()
+    rest = [rs.sample() for _ in range(6)]  # two of the short block, then a long one
+
+    rs.load_state_dict(state)
+    assert ws.win_max == 40
+    again = [rs.sample() for _ in range(6)]
+    for a, b in zip(rest, again, strict=True):
+        assert torch.equal(a.pix, b.pix) and torch.equal(a.rays_o, b.rays_o)
+        assert torch.equal(a.target, b.target)
+    j0, j1 = ws.sample(4000)
+    assert (j1 - j0).max() > 3 and (j1 - j0).max() <= 40
+    with pytest.raises(InputError, match="win_max >= win_min"):
+        ws.set_win_max(0)
+
+
 def test_targets_and_pixels(random_stream, scene_config):
     cfg = scene_config(16, 12, t_end_us=100_000, n_views=50)
     stream = random_stream(3000, 16, 12, t_max=99_999)

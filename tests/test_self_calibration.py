@@ -340,6 +340,57 @@ def test_refine_win_max_counts_a_wrapped_windows_views(ball):
     assert rays.grad[:, 0].tolist() == [0.0, 1.0, 0.0, 1.0]
 
 
+def test_pose_settle_lengthens_the_windows_once_the_turns_stop_moving():
+    """No look before the pose lr's warm-up ends, one per CHECK_EVERY of the budget after it;
+    the windows lengthen at the first look whose RMS movement (pixels at fx) is below the
+    tolerance, and never again after."""
+    from fastenerf.pose_settle import CHECK_EVERY, PoseSettle
+
+    windows = WindowSampler(100, 0, 100_000, 1, 5, seed=0)
+    cfg = TrainConfig(refine_poses=True, refine_settle_px=0.5, settle_win_max=20)
+    settle = PoseSettle(cfg, windows, fx=100.0, start=0.1)
+    turns = torch.zeros(30, 3)
+    assert not settle.due(0.05)  # still in the warm-up
+    assert settle.due(0.1) and not settle.look(0.1, turns)  # the first look only remembers
+    assert not settle.due(0.1 + CHECK_EVERY / 2)
+    turns[:, 0] += 0.01  # 0.01 rad at fx 100: one pixel
+    assert settle.due(0.15) and not settle.look(0.15, turns)
+    assert settle.moved_px == pytest.approx(1.0) and windows.win_max == 5
+    turns[::2, 1] += 0.002 * 2**0.5  # RMS over the rows: 0.2 px
+    assert settle.due(0.2) and settle.look(0.2, turns)
+    assert settle.moved_px == pytest.approx(0.2) and settle.settled_at == 0.2
+    assert windows.win_max == 20 and not settle.due(0.9)
+    assert settle.stats() == {"field_win_max": 20.0, "pose_settle_px": settle.moved_px}
+    again = PoseSettle(cfg, windows, fx=100.0, start=0.1)
+    again.load_state_dict(settle.state_dict())
+    assert again.settled_at == 0.2 and not again.due(0.5)
+
+
+def test_a_run_whose_poses_settle_lengthens_its_windows_and_resumes_exactly(scene, tmp_path):
+    """A 40-step run that looks every other step: with a tolerance no movement is under, the
+    windows stay; with one every movement is under, they lengthen at the second look (step
+    2), recorded in config.json and metrics.jsonl; a checkpoint taken after the switch but
+    inside the sampler's block drawn before it resumes bit for bit."""
+    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, steps=40)
+    cfg.update(perturb=PerturbConfig(pose_error_deg=1.0), refine_gate=0.0)  # every row moves
+    never = Trainer(scene, tiny(**cfg, refine_settle_px=1e-6), tmp_path / "never")
+    never.run(progress=False)
+    c = never.cfg
+    assert c.win_max < c.settle_win_max and c.refine_win_max == c.win_max
+    assert never.windows.win_max == c.win_max
+    whole, resumed = whole_and_resumed(scene, {**cfg, "refine_settle_px": 1e3}, tmp_path, 5)
+    for tr in (whole, resumed):
+        assert tr.windows.win_max == tr.cfg.settle_win_max
+    assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
+    a, r = field_state(whole), field_state(resumed)
+    assert all(torch.equal(a[k], r[k]) for k in a)
+    conf = json.loads((tmp_path / "whole" / "config.json").read_text())
+    assert conf["self_calibration"]["poses"]["settled_at"] == pytest.approx(0.05)
+    lines = (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()
+    lengths = [json.loads(line)["field_win_max"] for line in lines]
+    assert lengths[0] == c.win_max and lengths[-1] == c.settle_win_max
+
+
 # --------------------------------------------------------------------------------- thresholds
 
 
