@@ -151,6 +151,12 @@ def training_section(src, worker) -> None:
             f"pose corrections {last['pose_correction_deg']:.3f} deg mean"
             + ("" if err is None else f", error {err:.3f} deg")
         )
+    if "field_win_max" in last:  # --refine-settle-px
+        moved = last.get("pose_settle_px")
+        imgui.text(
+            f"windows up to {last['field_win_max']:.0f} views"
+            + ("" if moved is None else f", poses moved {moved:.3f} px")
+        )
     if "threshold_pos" in last:  # --estimate-threshold
         imgui.text(f"thresholds +{last['threshold_pos']:.4f} / -{last['threshold_neg']:.4f}")
     if st.done:
