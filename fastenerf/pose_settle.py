@@ -68,9 +68,14 @@ class PoseSettle:
         return out
 
     def state_dict(self) -> dict:
-        """What a resume needs (the window length itself is the sampler's state)."""
-        return {"settled_at": self.settled_at, "moved_px": self.moved_px}
+        """What a resume needs to look where the whole run would (the window length itself is
+        the sampler's state)."""
+        last = (None, None) if self.last is None else self.last
+        state = {"settled_at": self.settled_at, "moved_px": self.moved_px}
+        return {**state, "last_progress": last[0], "last_turns": last[1]}
 
     def load_state_dict(self, state: dict | None) -> None:
         state = state or {}
         self.settled_at, self.moved_px = state.get("settled_at"), state.get("moved_px")
+        turns = state.get("last_turns")
+        self.last = None if turns is None else (float(state["last_progress"]), turns.cpu())

@@ -366,11 +366,15 @@ def test_pose_settle_lengthens_the_windows_once_the_turns_stop_moving():
     assert again.settled_at == 0.2 and not again.due(0.5)
 
 
-def test_a_run_whose_poses_settle_lengthens_its_windows_and_resumes_exactly(scene, tmp_path):
+@pytest.mark.parametrize("steps_before", [1, 5])
+def test_a_run_whose_poses_settle_lengthens_its_windows_and_resumes_exactly(
+    scene, tmp_path, steps_before
+):
     """A 40-step run that looks every other step: with a tolerance no movement is under, the
     windows stay; with one every movement is under, they lengthen at the second look (step
-    2), recorded in config.json and metrics.jsonl; a checkpoint taken after the switch but
-    inside the sampler's block drawn before it resumes bit for bit."""
+    2), recorded in config.json and metrics.jsonl. A checkpoint taken between the two looks
+    (step 1), or after the switch but inside the sampler's block drawn before it (step 5),
+    resumes bit for bit."""
     cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, steps=40)
     cfg.update(perturb=PerturbConfig(pose_error_deg=1.0), refine_gate=0.0)  # every row moves
     never = Trainer(scene, tiny(**cfg, refine_settle_px=1e-6), tmp_path / "never")
@@ -378,9 +382,11 @@ def test_a_run_whose_poses_settle_lengthens_its_windows_and_resumes_exactly(scen
     c = never.cfg
     assert c.win_max < c.settle_win_max and c.refine_win_max == c.win_max
     assert never.windows.win_max == c.win_max
-    whole, resumed = whole_and_resumed(scene, {**cfg, "refine_settle_px": 1e3}, tmp_path, 5)
+    settle = {**cfg, "refine_settle_px": 1e3}
+    whole, resumed = whole_and_resumed(scene, settle, tmp_path, steps_before)
     for tr in (whole, resumed):
         assert tr.windows.win_max == tr.cfg.settle_win_max
+        assert tr.selfcal.pose_cal.settle.settled_at == pytest.approx(0.05)
     assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
     a, r = field_state(whole), field_state(resumed)
     assert all(torch.equal(a[k], r[k]) for k in a)
