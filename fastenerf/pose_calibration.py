@@ -131,9 +131,9 @@ class PoseCalibration:
             self.adam_groups.append(group)
         self.settle: PoseSettle | None = None  # lengthens the windows (refine_settle_px)
         if cfg.refine_settle_px is not None:
-            start = pose_lr_start(cfg) + cfg.refine_warmup * (1.0 - pose_lr_start(cfg))
-            fx = sampler.rig.intrinsics.fx
-            self.settle = PoseSettle(cfg, sampler.windows, fx, start)
+            s0 = pose_lr_start(cfg)  # looks start once the pose lr's ramp is done
+            start = s0 + cfg.refine_warmup * (1.0 - s0)
+            self.settle = PoseSettle(cfg, sampler.windows, sampler.rig.intrinsics.fx, start)
         self.seen: torch.Tensor | None = None  # (G,) bool rows the last batch saw
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
         self.sharing = False  # the poses share one correction now (refine_shared_until)

@@ -41,6 +41,9 @@ RESUMABLE_KEYS = {
     "device",
 }
 
+# The sampler's window states a checkpoint holds: the current block's, and the lengths now.
+WINDOW_STATES = ("windows", "windows_now")
+
 
 def cpu_copy(obj: Any) -> Any:
     """A deep copy of a state dict with every tensor detached, cloned and on the CPU, so it
@@ -204,10 +207,6 @@ def _np_state_to_torch(state: tuple) -> dict:
 
 def _np_state_from_torch(d: dict) -> tuple:
     return (d["name"], d["keys"].numpy().astype(np.uint32), d["pos"], d["has_gauss"], d["cached"])
-
-
-# The sampler's window states a checkpoint holds: the current block's, and the lengths now.
-WINDOW_STATES = ("windows", "windows_now")
 
 
 def _windows_saved(w: dict) -> dict:
