@@ -60,7 +60,8 @@ class TrainConfig:
     win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
     """Longest event window, views. Default: 50 synthetic / 100 real views of a 1000-view
     loop (the reference's), scaled by n_views / 1000; ngp's fast preset: 0.2 of a synthetic
-    loop (on a GPU only without --refine-poses; FAST_WINDOW_FRACTION)."""
+    loop (FAST_WINDOW_FRACTION; a GPU run with --refine-poses starts on the reference's and
+    lengthens them once the poses settle: refine_settle_px)."""
     win_redraw: Literal["step", "load"] = "step"
     """When window lengths are drawn: every step (ours), or once per end view at load (ref.)."""
     neg_ratio: float | None = field(default=None, metadata={"min": 0.0, "max": 1.0})
@@ -163,7 +164,8 @@ class TrainConfig:
     settle: when the corrections' turns moved less than this many pixels (RMS over the poses,
     at the focal length) over the last 5 % of the budget. Until then the field trains on
     win_max (default: the reference's), and the corrections learn from windows up to
-    refine_win_max (default: win_max) throughout. None: off (`pose_settle`)."""
+    refine_win_max (default: win_max) throughout. None: off (`pose_settle`), except on a
+    GPU run of ngp's fast preset on a synthetic scene with win_max unset: SETTLE_PX (0.3)."""
     settle_win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
     """The field's longest window once the poses settle (refine_settle_px), views. Default:
     the fast preset's long windows, FAST_WINDOW_FRACTION of the loop (at least win_max)."""
@@ -312,15 +314,16 @@ class TrainConfig:
     def _resolve_windows(self, n_views: int, real: bool, cpu_ngp: bool) -> None:
         """win_max and, where the windows lengthen once the poses settle, settle_win_max and
         refine_win_max: the `None`s replaced in place (`resolved`'s copy)."""
-        settle = self.refine_poses and self.refine_settle_px is not None
         if self.win_max is None:
             longer = self.backend == "ngp" and self.preset == "fast" and not real
-            # A GPU run that refines poses keeps the reference's (FAST_WINDOW_FRACTION), and
-            # so does every run whose windows lengthen once the poses settle.
+            if longer and self.refine_poses and not cpu_ngp and self.refine_settle_px is None:
+                self.refine_settle_px = SETTLE_PX  # a GPU run that refines poses: see SETTLE_PX
+            settle = self.refine_poses and self.refine_settle_px is not None
+            # A run whose windows lengthen once the poses settle starts on the reference's.
             longer = longer and (cpu_ngp or not self.refine_poses) and not settle
             fraction = FAST_WINDOW_FRACTION if longer else None
             self.win_max = reference_win_max(n_views, real, self.win_min, fraction)
-        if settle:
+        if self.refine_poses and self.refine_settle_px is not None:
             if self.settle_win_max is None:
                 fraction = FAST_WINDOW_FRACTION
                 self.settle_win_max = reference_win_max(n_views, real, self.win_min, fraction)
@@ -340,10 +343,18 @@ class TrainConfig:
 # reference's 0.05 elsewhere): a run of seconds to minutes learns faster from windows that span
 # more of the loop (every built-in scene and a mesh scene, on a 2-core CPU and on an H100:
 # benchmarks/RESULTS.md, the twenty-second and twenty-third sessions). A GPU run that refines
-# poses keeps the reference's: at 2° the long windows' field absorbs the pose error and the
-# poses stop higher, even with the pose gradient from short windows only (refine_win_max;
-# the twenty-fourth session).
+# poses gets them only once its poses settle (SETTLE_PX): at 2° a field on long windows from the
+# start absorbs the pose error and the poses stop higher, even with the pose gradient from
+# short windows only (refine_win_max; the twenty-fourth session).
 FAST_WINDOW_FRACTION = 0.2
+
+# A GPU run of ngp's fast preset that refines poses on a synthetic scene, with win_max unset,
+# starts on the reference's windows and lengthens them to FAST_WINDOW_FRACTION once the pose
+# corrections move less than this many pixels per 5 % of the budget (`pose_settle`): the long
+# windows' gain at 0° on every built-in scene and the mesh scene, with the short windows' pose
+# accuracy at 2° (benchmarks/RESULTS.md, the twenty-fifth session). An explicit win_max keeps
+# its windows throughout; the CPU, where long windows did not hurt at 2°, keeps them long.
+SETTLE_PX = 0.3
 
 
 def reference_win_max(

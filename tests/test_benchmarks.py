@@ -592,7 +592,7 @@ def test_gpu_runs60_skips_a_scene_whose_data_never_arrives(tmp_path):
 
 
 def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
-    """gpu_poll.sh: once every list is done, RESULTS' JSON, Markdown and logs go to
+    """gpu_poll.sh: once every list is done, RESULTS' JSON (lines too), Markdown and logs go to
     $OUT/res.tgz, checkpoints left out; bad arguments are one line and exit code 2."""
     import tarfile
 
@@ -601,6 +601,7 @@ def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
     run = res / "a" / "plant" / "none0"
     run.mkdir(parents=True)
     (run / "error_vs_time.json").write_text("{}")
+    (run / "metrics.jsonl").write_text("{}\n")
     (run / "ckpt.pt").write_bytes(b"x" * 100)
     (res / "a" / "progress.log").write_text("[00:00:01 +0s] plant none0 rc 0\n")
     (res / "a" / "all.done").touch()
@@ -614,6 +615,7 @@ def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
     with tarfile.open(back / "res.tgz") as t:
         names = set(t.getnames())
     assert "o20/a/plant/none0/error_vs_time.json" in names and "o20/a/progress.log" in names
+    assert "o20/a/plant/none0/metrics.jsonl" in names
     assert not any(n.endswith(".pt") for n in names)
     for args in ([], [str(tmp_path / "nothing"), "5"], [str(res), "soon"]):
         r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True, env=env)

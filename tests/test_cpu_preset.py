@@ -7,6 +7,7 @@ import pytest
 from fastenerf.backends import get_option, parse_options
 from fastenerf.config import (
     FAST_WINDOW_FRACTION,
+    SETTLE_PX,
     CylinderConfig,
     IntrinsicsConfig,
     SceneConfig,
@@ -81,7 +82,10 @@ def test_longer_windows_for_the_fast_preset_on_synthetic_scenes():
     assert fast.resolved(synth, "cpu").win_max == round(FAST_WINDOW_FRACTION * 1000) == 200
     assert fast.resolved(synth, "cuda:0").win_max == 200
     assert refine.resolved(synth, "cpu").win_max == 200
-    assert refine.resolved(synth, "cuda:0").win_max == 50  # measured worse on a GPU: reference's
+    gpu_refine = refine.resolved(synth, "cuda:0")  # the reference's until the poses settle
+    assert (gpu_refine.win_max, gpu_refine.settle_win_max) == (50, 200)
+    assert gpu_refine.refine_settle_px == SETTLE_PX
+    assert refine.resolved(synth, "cpu").refine_settle_px is None  # long throughout on a CPU
     assert fast.resolved(real, "cpu").win_max == 100  # real scenes: not measured, reference's
     assert fast.resolved(real, "cuda:0").win_max == 100
     assert train_preset("eventnerf", "ngp").resolved(synth, "cuda:0").win_max == 50
@@ -95,6 +99,7 @@ def test_windows_that_lengthen_once_the_poses_settle_start_at_the_reference_leng
     import dataclasses
 
     synth = dataclasses.replace(scene(), n_views=1000)
+    real = dataclasses.replace(synth, kind="real")
     settle = train_preset("fast", "ngp", refine_poses=True, refine_settle_px=0.05)
     for device in ("cpu", "cuda:0"):  # the CPU too: without the option it starts long there
         c = settle.resolved(synth, device)
@@ -103,8 +108,14 @@ def test_windows_that_lengthen_once_the_poses_settle_start_at_the_reference_leng
     mine = dataclasses.replace(settle, win_max=30, settle_win_max=20, refine_win_max=10)
     c = mine.resolved(synth, "cuda:0")  # never shorter than where it starts
     assert (c.win_max, c.settle_win_max, c.refine_win_max) == (30, 30, 10)
-    plain = train_preset("fast", "ngp", refine_poses=True).resolved(synth, "cuda:0")
-    assert plain.settle_win_max is None and plain.refine_win_max is None
+    for plain in (  # windows of the user's, or a backend, preset or scene with no long ones
+        train_preset("fast", "ngp", refine_poses=True, win_max=50).resolved(synth, "cuda:0"),
+        train_preset("eventnerf", "ngp", refine_poses=True).resolved(synth, "cuda:0"),
+        TrainConfig(backend="vanilla", refine_poses=True).resolved(synth, "cuda:0"),
+        train_preset("fast", "ngp", refine_poses=True).resolved(real, "cuda:0"),
+    ):
+        assert plain.refine_settle_px is None and plain.settle_win_max is None
+        assert plain.refine_win_max is None
     with pytest.raises(InputError, match="'refine_settle_px' needs refine_poses"):
         train_preset("fast", "ngp", refine_settle_px=0.05).validate()
     with pytest.raises(InputError, match="'settle_win_max' needs refine_settle_px"):
