@@ -13,6 +13,9 @@ Every rank builds the same Trainer; `make_data_parallel` then makes the ranks re
   into one buffer). The event loss is a mean over the batch's pixels, so the average of the
   ranks' gradients is the gradient of the union batch's loss: N ranks take the step one
   process would take on the union batch. Every rank's Adam then applies the same update.
+  The self-calibration's gradients (pose corrections, thresholds) are averaged with them, and
+  the pose rows any rank's batch saw are stepped on every rank (`SeenRows`): one set of
+  corrections, as one process would learn on the union batch.
   The global torch RNG stays the same on every rank (the occupancy-grid refresh of ngp draws
   from it, and must pick the same cells everywhere); the render's sample jitter, drawn from
   it too, is then the same numbers for different rays, which is no bias.
@@ -74,7 +77,8 @@ class GradientAverager:
     rank that skipped its step (see the module docstring).
 
     params: the parameters, in the same order on every rank; device: where the flat buffer
-    lives (the parameters' device; NCCL needs CUDA tensors).
+    lives (the parameters' device; NCCL needs CUDA tensors); rows: the pose rows a step's batch
+    saw (`SeenRows`), made their union over the ranks in the same all-reduce, or None.
     """
 
     def __init__(
@@ -83,8 +87,9 @@ class GradientAverager:
         world: World,
         device: torch.device,
         optimizer: torch.optim.Optimizer | None = None,
+        rows: SeenRows | None = None,
     ):
-        self.params, self.world, self.device = list(params), world, device
+        self.params, self.world, self.device, self.rows = list(params), world, device, rows
         self.big = [p for p in self.params if p.numel() >= BUCKET_NUMEL]
         self.small = [p for p in self.params if p.numel() < BUCKET_NUMEL]
         self.reduced = False  # this step's all-reduce is done
@@ -111,7 +116,9 @@ class GradientAverager:
             if p.grad is None or not finite:
                 p.grad = torch.zeros_like(p)
         flag = torch.full((1,), float(finite), device=self.device)
-        flat = torch.cat([*(p.grad.reshape(-1).float() for p in self.small), flag])
+        seen = None if self.rows is None else self.rows.get()
+        seen_part = [] if seen is None else [seen.reshape(-1).float()]
+        flat = torch.cat([*(p.grad.reshape(-1).float() for p in self.small), *seen_part, flag])
         dist.all_reduce(flat)
         for p in self.big:
             dist.all_reduce(p.grad)
@@ -120,7 +127,12 @@ class GradientAverager:
         if self.skipped:
             for p in self.params:
                 p.grad = None
+            if seen is not None:  # nor does refine_decay shrink a row (the ranks stay alike)
+                self.rows.set(torch.zeros_like(seen))
             return
+        if seen is not None:  # a row any rank saw: every rank's row Adam steps it alike
+            k = seen.numel()
+            self.rows.set((flat[-1 - k : -1] > 0).view_as(seen))
         flat.div_(n)
         offset = 0
         for p in self.small:
@@ -133,6 +145,25 @@ class GradientAverager:
     def remove(self) -> None:
         if self.handle is not None:
             self.handle.remove()
+
+
+class SeenRows:
+    """The pose rows the step's batch saw on this rank (`PoseCalibration.seen`: the rows the
+    lazy row Adam steps and refine_decay shrinks), replaced by their union over the ranks.
+
+    With the gradients averaged, a row only one rank saw has its union-batch gradient on every
+    rank; stepping it on every rank keeps the corrections, their moments and their gate
+    statistics the same everywhere, as one process would on the union batch.
+    """
+
+    def __init__(self, pose_cal):
+        self.pose_cal = pose_cal
+
+    def get(self) -> torch.Tensor | None:
+        return self.pose_cal.seen
+
+    def set(self, union: torch.Tensor) -> None:
+        self.pose_cal.seen = union
 
 
 def rank_sampler_seed(seed: int, rank: int, step: int) -> tuple[dict, int]:
@@ -170,8 +201,9 @@ def broadcast_state(trainer: Trainer, world: World) -> None:
 def make_data_parallel(trainer: Trainer, world: World | None = None) -> DataParallelSync:
     """Make `trainer` this rank's replica of one data-parallel run (the group must be up).
 
-    Broadcasts rank 0's state, re-seeds this rank's sampler, averages gradients before each
-    optimiser step. Returns the sync hook, which must be the LAST hook of `trainer.run`.
+    Broadcasts rank 0's state, re-seeds this rank's sampler, averages gradients (the field's
+    and the self-calibration's) before each optimiser step. Returns the sync hook, which must
+    be the LAST hook of `trainer.run`.
     """
     world = world or current_world()
     if not dist.is_initialized():
@@ -179,7 +211,13 @@ def make_data_parallel(trainer: Trainer, world: World | None = None) -> DataPara
     broadcast_state(trainer, world)
     reseed_sampler(trainer, world.rank)
     params = [p for g in trainer.optimizer.param_groups for p in g["params"]]
-    averager = GradientAverager(params, world, trainer.device, trainer.optimizer)
+    rows = None
+    if trainer.selfcal is not None:  # poses and thresholds: their own optimisers step after
+        ids = {id(p) for p in params}
+        params += [p for p in trainer.selfcal.parameters() if id(p) not in ids]
+        if trainer.selfcal.pose_cal is not None:
+            rows = SeenRows(trainer.selfcal.pose_cal)
+    averager = GradientAverager(params, world, trainer.device, trainer.optimizer, rows)
     return DataParallelSync(averager, world)
 
 

@@ -318,3 +318,54 @@ def test_a_rank_that_left_its_group_exits_at_once_with_its_code():
     assert r.stdout.strip() == "before"  # flushed although os._exit skips the teardown
     err = [x for x in r.stderr.splitlines() if "Warp CUDA warning" not in x]
     assert err == ["fastenerf info: error: /nonexistent/scene: no such file or folder"]
+
+
+def _rank_poses(rank: int, world_size: int, scene_dir: str, tmp: str) -> None:
+    torch.set_num_threads(1)
+    from fastenerf.data_parallel import make_data_parallel
+    from fastenerf.distributed import destroy, init
+    from fastenerf.train import Trainer
+
+    world = init("gloo", rank=rank, world_size=world_size, init_method=f"file://{tmp}/rdzv")
+    cfg = tiny_cfg(steps=6, refine_poses=True, refine_start=0.0, refine_warmup=0.0)
+    cfg.refine_gate, cfg.refine_lr = 0.0, 1e-2  # every seen row steps, and visibly
+    trainer = Trainer(load_scene(scene_dir), cfg, f"{tmp}/rank{rank}")
+    sync = make_data_parallel(trainer, world)
+    seen = []
+    pose_cal = trainer.selfcal.pose_cal
+    step = pose_cal.step
+    pose_cal.step = lambda found_inf: (seen.append(pose_cal.seen.clone()), step(found_inf))
+    trainer.run([sync], progress=False)
+    torch.save(
+        {
+            "delta": pose_cal.refiner.delta.detach().clone(),
+            "moments": {
+                k: v.clone()
+                for k, v in pose_cal.optimizer.state[pose_cal.refiner.delta].items()
+                if torch.is_tensor(v)
+            },
+            "seen": torch.stack(seen),
+        },
+        f"{tmp}/poses{rank}.pt",
+    )
+    destroy()
+
+
+def test_two_ranks_refine_one_set_of_poses(tiny_scene, tmp_path):
+    """Data-parallel with --refine-poses: the corrections' gradients are averaged and every
+    rank's row Adam steps the rows any rank saw, so the ranks' corrections and moments stay
+    the same (each rank's own, from its own rays, drift apart)."""
+    ctx = mp.get_context("spawn")
+    args = (2, str(tiny_scene), str(tmp_path))
+    procs = [ctx.Process(target=_rank_poses, args=(r, *args)) for r in (0, 1)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(TIMEOUT_S)
+    assert [p.exitcode for p in procs] == [0, 0]
+    r0, r1 = (torch.load(tmp_path / f"poses{r}.pt", weights_only=False) for r in (0, 1))
+    assert torch.equal(r0["seen"], r1["seen"])  # the union, on both
+    assert r0["delta"].abs().max() > 0  # the poses moved
+    torch.testing.assert_close(r0["delta"], r1["delta"], rtol=0, atol=0)
+    for k, v in r0["moments"].items():
+        torch.testing.assert_close(v, r1["moments"][k], rtol=0, atol=0)
