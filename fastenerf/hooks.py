@@ -86,7 +86,9 @@ class ScheduledEval(Hook):
     hands each point to `on_point(point)` and stops the run after the last one.
 
     A point: target_s, train_s, step, psnr, ssim, psnr_uncorrected, eval_s, the means
-    since the previous point of loss, samples_per_step and step_ms, and the learnt
+    since the previous point of loss, samples_per_step (the samples the field ran on),
+    marched_per_step and step_ms, compacted_share (the share of those steps that ran on
+    compacted samples: `MarcherOptions.early_stop_eps`), and the learnt
     calibration's latest stats (CALIBRATION_KEYS, where the run learns it): how the poses
     and thresholds move over a run, not only where they end.
     """
@@ -136,6 +138,11 @@ class ScheduledEval(Hook):
         losses = [s["loss"] for s in self.acc if math.isfinite(s["loss"])]
         n_rays = trainer.rays_per_step_total
         samples = [s.get("samples_per_ray", float("nan")) * n_rays for s in self.acc]
+        # a compacted step marched more than the field ran on (no marched_per_ray: the same)
+        marched = [
+            s.get("marched_per_ray", s.get("samples_per_ray", float("nan"))) for s in self.acc
+        ]
+        compacted = sum("marched_per_ray" in s for s in self.acc)
         point = {
             "target_s": target,
             "train_s": train_s,
@@ -144,6 +151,8 @@ class ScheduledEval(Hook):
             "eval_s": time.perf_counter() - te,
             "loss": sum(losses) / len(losses) if losses else float("nan"),
             "samples_per_step": sum(samples) / max(len(samples), 1),
+            "marched_per_step": n_rays * sum(marched) / max(len(marched), 1),
+            "compacted_share": compacted / max(len(self.acc), 1),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
             **_latest(self.acc, CALIBRATION_KEYS),
         }

@@ -13,7 +13,7 @@ from fastenerf.data.formats.native import load_scene
 from fastenerf.hooks import Checkpointer, DivergenceGuard, Hook, ScheduledEval
 from fastenerf.run import load_checkpoint, read_progress
 from fastenerf.train import Trainer
-from tests.test_train import tiny_cfg
+from tests.test_train import HAVE_NGP, NGP_TINY, tiny_cfg
 
 
 @pytest.fixture(scope="module")
@@ -113,6 +113,29 @@ def test_scheduled_eval_points_carry_the_learnt_calibration(scene, tmp_path):
             want = {"pose_correction_deg", "pose_correction_max_deg", "threshold_pos"}
             assert want <= keys if learnt else not keys
             assert all(math.isfinite(p[k]) for k in keys)
+
+
+@pytest.mark.skipif(not HAVE_NGP, reason="ngp backend not built")
+def test_scheduled_eval_points_say_how_many_steps_compacted(scene, tmp_path):
+    """Each point: the samples marched beside those the field ran on, and the share of its
+    steps that compacted (the GPU switches compaction on and off as it pays)."""
+    from fastenerf.evaluate import make_eval_set
+
+    ev = make_eval_set(scene, 1, 0.25)
+    for eps in (1e-4, 0.0):
+        points = []
+        opts = {**NGP_TINY, "early_stop_eps": eps, "density_bias": 3.0}  # opaque: rays stop
+        cfg = tiny_cfg("ngp", steps=1000, backend_options=opts)
+        trainer = Trainer(scene, cfg, tmp_path / f"run{eps}")
+        trainer.run([ScheduledEval(ev, [1e-9, 2e-9], points.append)])
+        assert points
+        for p in points:
+            if eps:
+                assert p["compacted_share"] == 1.0
+                assert p["marched_per_step"] > p["samples_per_step"] > 0
+            else:
+                assert p["compacted_share"] == 0.0
+                assert p["marched_per_step"] == pytest.approx(p["samples_per_step"])
 
 
 class _ClockJump(Hook):
