@@ -253,6 +253,19 @@ def _rank(rank: int, world_size: int, scene_dir: str, tmp: str) -> None:
     destroy()
 
 
+def two_ranks(target, scene_dir, tmp_path, saved: str) -> tuple[dict, dict]:
+    """Run `target(rank, 2, scene_dir, tmp)` in two spawned processes (gloo over a file
+    rendezvous); returns what each saved to tmp/`saved`RANK.pt."""
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=target, args=(r, 2, str(scene_dir), str(tmp_path))) for r in (0, 1)]
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join(TIMEOUT_S)
+    assert [p.exitcode for p in procs] == [0, 0]
+    return tuple(torch.load(tmp_path / f"{saved}{r}.pt", weights_only=False) for r in (0, 1))
+
+
 def union(a: RayBatch, b: RayBatch) -> RayBatch:
     """One batch holding both: rows :B are every pixel at t0, rows B: at t1."""
     ba, bb = len(a.target), len(b.target)
@@ -271,14 +284,7 @@ def union(a: RayBatch, b: RayBatch) -> RayBatch:
 def test_two_rank_step_equals_one_process_step_on_the_union_batch(tiny_scene, tmp_path):
     from fastenerf.train import Trainer
 
-    ctx = mp.get_context("spawn")
-    procs = [ctx.Process(target=_rank, args=(r, 2, str(tiny_scene), str(tmp_path))) for r in (0, 1)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join(TIMEOUT_S)
-    assert [p.exitcode for p in procs] == [0, 0]
-    r0, r1 = (torch.load(tmp_path / f"rank{r}.pt", weights_only=False) for r in (0, 1))
+    r0, r1 = two_ranks(_rank, tiny_scene, tmp_path, "rank")
     a, b = RayBatch(**r0["batch"]), RayBatch(**r1["batch"])
     assert not torch.equal(a.pix, b.pix)  # the ranks drew their own rays
 
@@ -355,15 +361,7 @@ def test_two_ranks_refine_one_set_of_poses(tiny_scene, tmp_path):
     """Data-parallel with --refine-poses: the corrections' gradients are averaged and every
     rank's row Adam steps the rows any rank saw, so the ranks' corrections and moments stay
     the same (each rank's own, from its own rays, drift apart)."""
-    ctx = mp.get_context("spawn")
-    args = (2, str(tiny_scene), str(tmp_path))
-    procs = [ctx.Process(target=_rank_poses, args=(r, *args)) for r in (0, 1)]
-    for p in procs:
-        p.start()
-    for p in procs:
-        p.join(TIMEOUT_S)
-    assert [p.exitcode for p in procs] == [0, 0]
-    r0, r1 = (torch.load(tmp_path / f"poses{r}.pt", weights_only=False) for r in (0, 1))
+    r0, r1 = two_ranks(_rank_poses, tiny_scene, tmp_path, "poses")
     assert torch.equal(r0["seen"], r1["seen"])  # the union, on both
     assert r0["delta"].abs().max() > 0  # the poses moved
     torch.testing.assert_close(r0["delta"], r1["delta"], rtol=0, atol=0)
