@@ -14,8 +14,10 @@ Every rank builds the same Trainer; `make_data_parallel` then makes the ranks re
   ranks' gradients is the gradient of the union batch's loss: N ranks take the step one
   process would take on the union batch. Every rank's Adam then applies the same update.
   The self-calibration's gradients (pose corrections, thresholds) are averaged with them, and
-  the pose rows any rank's batch saw are stepped on every rank (`SeenRows`): one set of
-  corrections, as one process would learn on the union batch.
+  the pose rows any rank's batch saw (`PoseCalibration.seen`: the rows the lazy row Adam
+  steps and refine_decay shrinks) become their union: every rank steps them alike, so the
+  corrections, their moments and their gate statistics stay one set, as one process would
+  learn on the union batch.
   The global torch RNG stays the same on every rank (the occupancy-grid refresh of ngp draws
   from it, and must pick the same cells everywhere); the render's sample jitter, drawn from
   it too, is then the same numbers for different rays, which is no bias.
@@ -77,8 +79,9 @@ class GradientAverager:
     rank that skipped its step (see the module docstring).
 
     params: the parameters, in the same order on every rank; device: where the flat buffer
-    lives (the parameters' device; NCCL needs CUDA tensors); rows: the pose rows a step's batch
-    saw (`SeenRows`), made their union over the ranks in the same all-reduce, or None.
+    lives (the parameters' device; NCCL needs CUDA tensors); pose_cal: the run's
+    `PoseCalibration` or None, whose `seen` rows become their union over the ranks in the
+    same all-reduce.
     """
 
     def __init__(
@@ -87,9 +90,10 @@ class GradientAverager:
         world: World,
         device: torch.device,
         optimizer: torch.optim.Optimizer | None = None,
-        rows: SeenRows | None = None,
+        pose_cal=None,
     ):
-        self.params, self.world, self.device, self.rows = list(params), world, device, rows
+        self.params, self.world, self.device = list(params), world, device
+        self.pose_cal = pose_cal
         self.big = [p for p in self.params if p.numel() >= BUCKET_NUMEL]
         self.small = [p for p in self.params if p.numel() < BUCKET_NUMEL]
         self.reduced = False  # this step's all-reduce is done
@@ -116,7 +120,7 @@ class GradientAverager:
             if p.grad is None or not finite:
                 p.grad = torch.zeros_like(p)
         flag = torch.full((1,), float(finite), device=self.device)
-        seen = None if self.rows is None else self.rows.get()
+        seen = None if self.pose_cal is None else self.pose_cal.seen
         seen_part = [] if seen is None else [seen.reshape(-1).float()]
         flat = torch.cat([*(p.grad.reshape(-1).float() for p in self.small), *seen_part, flag])
         dist.all_reduce(flat)
@@ -128,11 +132,11 @@ class GradientAverager:
             for p in self.params:
                 p.grad = None
             if seen is not None:  # nor does refine_decay shrink a row (the ranks stay alike)
-                self.rows.set(torch.zeros_like(seen))
+                self.pose_cal.seen = torch.zeros_like(seen)
             return
         if seen is not None:  # a row any rank saw: every rank's row Adam steps it alike
             k = seen.numel()
-            self.rows.set((flat[-1 - k : -1] > 0).view_as(seen))
+            self.pose_cal.seen = (flat[-1 - k : -1] > 0).view_as(seen)
         flat.div_(n)
         offset = 0
         for p in self.small:
@@ -145,25 +149,6 @@ class GradientAverager:
     def remove(self) -> None:
         if self.handle is not None:
             self.handle.remove()
-
-
-class SeenRows:
-    """The pose rows the step's batch saw on this rank (`PoseCalibration.seen`: the rows the
-    lazy row Adam steps and refine_decay shrinks), replaced by their union over the ranks.
-
-    With the gradients averaged, a row only one rank saw has its union-batch gradient on every
-    rank; stepping it on every rank keeps the corrections, their moments and their gate
-    statistics the same everywhere, as one process would on the union batch.
-    """
-
-    def __init__(self, pose_cal):
-        self.pose_cal = pose_cal
-
-    def get(self) -> torch.Tensor | None:
-        return self.pose_cal.seen
-
-    def set(self, union: torch.Tensor) -> None:
-        self.pose_cal.seen = union
 
 
 def rank_sampler_seed(seed: int, rank: int, step: int) -> tuple[dict, int]:
@@ -211,13 +196,12 @@ def make_data_parallel(trainer: Trainer, world: World | None = None) -> DataPara
     broadcast_state(trainer, world)
     reseed_sampler(trainer, world.rank)
     params = [p for g in trainer.optimizer.param_groups for p in g["params"]]
-    rows = None
+    pose_cal = None
     if trainer.selfcal is not None:  # poses and thresholds: their own optimisers step after
         ids = {id(p) for p in params}
         params += [p for p in trainer.selfcal.parameters() if id(p) not in ids]
-        if trainer.selfcal.pose_cal is not None:
-            rows = SeenRows(trainer.selfcal.pose_cal)
-    averager = GradientAverager(params, world, trainer.device, trainer.optimizer, rows)
+        pose_cal = trainer.selfcal.pose_cal
+    averager = GradientAverager(params, world, trainer.device, trainer.optimizer, pose_cal)
     return DataParallelSync(averager, world)
 
 
