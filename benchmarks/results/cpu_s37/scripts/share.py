@@ -10,6 +10,7 @@ compaction on below 0.65), whether it compacts, samples per ray, the field's win
 """
 
 import json
+import os
 import sys
 
 from fastenerf.config import train_preset
@@ -37,6 +38,8 @@ class Share(Hook):
 
 
 def main(scene_dir: str, out: str, sets: list[str]) -> None:
+    if os.path.exists(out) or os.path.exists(out + ".run"):
+        raise InputError(f"{out}: exists (or its .run folder): give a new name")
     kv = {}
     for s in sets:
         k, _, v = s.partition("=")
@@ -60,6 +63,6 @@ if __name__ == "__main__":
         sys.exit(2)
     try:
         main(sys.argv[1], sys.argv[2], sys.argv[3:])
-    except (InputError, ValueError, FileNotFoundError) as e:
+    except (InputError, ValueError, OSError) as e:
         print(f"share.py: error: {e}", file=sys.stderr)
         sys.exit(2)
