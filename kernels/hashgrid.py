@@ -43,6 +43,7 @@ import warp as wp
 from .common import device_of, fast_view, init, launch
 from .gridconfig import HashGridConfig
 from .rows import tracker_of
+from .vector_memory import gather_pair, scatter_func, scatter_pair
 
 init()
 
@@ -109,84 +110,6 @@ def _grid_index_kernel(
     out[i] = wp.int64(lv[1] + grid_index(v[0], v[1], v[2], lv))
 
 
-# sm_90 vector memory ops. Corners (x, y, z) and (x+1, y, z) often share an aligned row pair
-# (dense: x even; hashed: x even flips only bit 0 of the hash): then one 16-byte load or one
-# `red.v4.f32` serves both; otherwise two 8-byte ones. Scalar Warp code elsewhere (CPU).
-_PAIR_GATHER = """
-#if defined(__CUDA_ARCH__)
-    const float* p0 = reinterpret_cast<const float*>(wp::address(buf, r0));
-    float a, b, c, d;
-    if (r1 == r0 + 1 && (r0 & 1) == 0) {
-        asm("ld.global.nc.v4.f32 {%0, %1, %2, %3}, [%4];"
-            : "=f"(a), "=f"(b), "=f"(c), "=f"(d) : "l"(p0));
-    } else {
-        const float* p1 = reinterpret_cast<const float*>(wp::address(buf, r1));
-        asm("ld.global.nc.v2.f32 {%0, %1}, [%2];" : "=f"(a), "=f"(b) : "l"(p0));
-        asm("ld.global.nc.v2.f32 {%0, %1}, [%2];" : "=f"(c), "=f"(d) : "l"(p1));
-    }
-    return wp::vec_t<4, float>(a, b, c, d);
-#else
-    wp::vec_t<2, float> u = wp::index(buf, r0);
-    wp::vec_t<2, float> v = wp::index(buf, r1);
-    return wp::vec_t<4, float>(u.c[0], u.c[1], v.c[0], v.c[1]);
-#endif
-"""
-
-_PAIR_SCATTER = """
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
-    float* p0 = reinterpret_cast<float*>(wp::address(buf, r0));
-    if (r1 == r0 + 1 && (r0 & 1) == 0) {
-        asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};" :: "l"(p0),
-                     "f"(v.c[0]), "f"(v.c[1]), "f"(v.c[2]), "f"(v.c[3]) : "memory");
-    } else {
-        float* p1 = reinterpret_cast<float*>(wp::address(buf, r1));
-        asm volatile("red.global.add.v2.f32 [%0], {%1, %2};" :: "l"(p0), "f"(v.c[0]), "f"(v.c[1])
-                     : "memory");
-        asm volatile("red.global.add.v2.f32 [%0], {%1, %2};" :: "l"(p1), "f"(v.c[2]), "f"(v.c[3])
-                     : "memory");
-    }
-#else
-    wp::atomic_add(buf, r0, wp::vec_t<2, float>(v.c[0], v.c[1]));
-    wp::atomic_add(buf, r1, wp::vec_t<2, float>(v.c[2], v.c[3]));
-#endif
-"""
-
-_SCATTER = """
-#if defined(__CUDA_ARCH__) && __CUDA_ARCH__ >= 900
-    float* p = reinterpret_cast<float*>(wp::address(buf, row));
-    if (NF == 2) {
-        asm volatile("red.global.add.v2.f32 [%0], {%1, %2};" :: "l"(p), "f"(v.c[0]), "f"(v.c[1])
-                     : "memory");
-    } else if (NF == 4) {
-        asm volatile("red.global.add.v4.f32 [%0], {%1, %2, %3, %4};" :: "l"(p),
-                     "f"(v.c[0]), "f"(v.c[1]), "f"(v.c[2]), "f"(v.c[3]) : "memory");
-    } else {
-        for (int k = 0; k < NF; ++k) atomicAdd(p + k, v.c[k]);
-    }
-#else
-    wp::atomic_add(buf, row, v);
-#endif
-"""
-
-
-@wp.func_native(_PAIR_GATHER)
-def gather_pair(buf: wp.array(dtype=wp.vec2), r0: int, r1: int) -> wp.vec4: ...
-
-
-@wp.func_native(_PAIR_SCATTER)
-def scatter_pair(buf: wp.array(dtype=wp.vec2), r0: int, r1: int, v: wp.vec4): ...
-
-
-@functools.cache
-def _scatter_func(F: int):
-    vec = wp.types.vector(length=F, dtype=wp.float32)
-
-    def scatter_add(buf: wp.array(dtype=vec), row: int, v: vec): ...
-
-    scatter_add.__qualname__ = f"scatter_add_f{F}"
-    return wp.func_native(_SCATTER.replace("NF", str(F)))(scatter_add)
-
-
 @functools.cache
 def _kernels(
     F: int,
@@ -208,7 +131,7 @@ def _kernels(
     The gradient w.r.t. the features is read as an (N, L*F) array with whatever strides it has.
     """
     vec = wp.types.vector(length=F, dtype=wp.float32)
-    scatter = _scatter_func(F)
+    scatter = scatter_func(F)
     pairs = pairs and F == 2
 
     @wp.func
@@ -317,9 +240,14 @@ def _kernels(
         table: wp.array(dtype=vec),
         levels: wp.array(dtype=wp.vec4i),
         n_levels: int,
+        rows: wp.array(dtype=wp.uint8),
+        masked: int,
         grad_x: wp.array(dtype=wp.vec3),
     ):
         i = wp.tid()
+        if masked != 0 and rows[i] == wp.uint8(0):
+            grad_x[i] = wp.vec3()  # a point whose gradient nobody reads: no table reads
+            return
         p = x[i]
         dpos = wp.vec3()
         for lv in range(n_levels):
@@ -385,6 +313,12 @@ def _tracked_backward(F: int):
             mask[row] = wp.uint8(1)
 
     return backward_table_tracked
+
+
+@functools.cache
+def _no_rows(device: str) -> wp.array:
+    """The mask argument of an unmasked backward(x) (one byte, never read)."""
+    return wp.zeros(1, dtype=wp.uint8, device=device)
 
 
 @functools.cache
@@ -492,12 +426,13 @@ def _launch_tracked(x, g_wp, cfg: HashGridConfig, grad_table, tracker) -> None:
 
 class _HashGridEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, table, cfg, variant, x_grad_weights):
+    def forward(ctx, x, table, cfg, variant, x_grad_weights, x_grad_mask):
         out = _launch_forward(
             x, table, cfg, variant, _alloc_out(x.shape[0], cfg, variant, x.device)
         )
         ctx.save_for_backward(x, table)
         ctx.cfg, ctx.variant, ctx.x_grad_weights = cfg, variant, x_grad_weights
+        ctx.x_grad_mask = x_grad_mask
         ctx.tracker = tracker_of(table)  # the rows the backward writes go to its tracker
         return out
 
@@ -537,6 +472,8 @@ class _HashGridEncode(torch.autograd.Function):
             grad_x = torch.empty_like(x)
             w = ctx.x_grad_weights
             gx = g if w is None else g * w  # held here: a Warp view does not own its memory
+            mask = ctx.x_grad_mask
+            rows = _no_rows(dev) if mask is None else fast_view(mask.view(torch.uint8))
             if n:
                 launch(
                     bwd_x,
@@ -548,10 +485,12 @@ class _HashGridEncode(torch.autograd.Function):
                         fast_view(table, vec),
                         _levels_wp(cfg, dev),
                         L,
+                        rows,
+                        int(mask is not None),
                         fast_view(grad_x, wp.vec3),
                     ],
                 )
-        return grad_x, grad_table, None, None, None
+        return grad_x, grad_table, None, None, None, None
 
 
 def hash_grid_encode(
@@ -560,6 +499,7 @@ def hash_grid_encode(
     cfg: HashGridConfig,
     _variant: _Variant = DEFAULT_VARIANT,
     x_grad_weights: torch.Tensor | None = None,
+    x_grad_mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Encode points x: (N, 3) float32 in [0, 1]^3 with table (n_params, F) -> (N, L*F) float32.
 
@@ -569,6 +509,9 @@ def hash_grid_encode(
     x_grad_weights: optional (L*F,) float32 weights of the output columns in the gradient
     w.r.t. x only (coarse-to-fine on the pose gradient, `fastenerf.fields.level_weights`); the
     value and the table's gradient are unweighted.
+    x_grad_mask: optional (N,) bool, the points whose gradient w.r.t. x is wanted; the others
+    get 0 without their corners being read (a ray whose pose gradient is dropped anyway,
+    `PoseCalibration.grad_rays`). The value and the table's gradient are unchanged.
     """
     if x.ndim != 2 or x.shape[1] != 3 or x.dtype != torch.float32:
         raise ValueError(
@@ -588,4 +531,14 @@ def hash_grid_encode(
             f"hash_grid_encode: x_grad_weights must be ({cfg.n_output_dims},), "
             f"got {tuple(x_grad_weights.shape)}"
         )
-    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, x_grad_weights)
+    if x_grad_mask is not None and (
+        x_grad_mask.shape != (x.shape[0],)
+        or x_grad_mask.dtype != torch.bool
+        or x_grad_mask.device != x.device
+    ):
+        raise ValueError(
+            f"hash_grid_encode: x_grad_mask must be ({x.shape[0]},) bool on {x.device}, got "
+            f"{tuple(x_grad_mask.shape)} {x_grad_mask.dtype} on {x_grad_mask.device}"
+        )
+    mask = None if x_grad_mask is None else x_grad_mask.contiguous()
+    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, x_grad_weights, mask)

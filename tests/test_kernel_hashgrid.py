@@ -275,3 +275,40 @@ def test_x_grad_weights_weight_only_the_position_gradient():
     assert not torch.allclose(x64w.grad, x64.grad)  # the weights changed the x-gradient
     with pytest.raises(ValueError, match="x_grad_weights"):
         hash_grid_encode(xt, tt, cfg, x_grad_weights=w[:-1])
+
+
+def test_x_grad_mask_zeroes_only_the_masked_points_position_gradient():
+    """x_grad_mask (the rays whose pose gradient is dropped): the masked points' x-gradient is
+    exactly 0, the others' the float64 reference's, with the coarse-to-fine weights too; the
+    value and the table's gradient are the unmasked ones."""
+    cfg = SMALL
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
+    x = random_points(600, cfg, gen)
+    res = torch.tensor(cfg.resolutions, dtype=torch.float64)
+    frac = torch.frac(x.double()[:, None, :] * res[None, :, None])
+    x = x[((frac > 1e-3) & (frac < 1 - 1e-3)).all(2).all(1)]  # away from the kinks
+    table = (torch.rand(cfg.n_params, cfg.n_features, generator=gen) * 2 - 1).float()
+    g = torch.randn(len(x), cfg.n_output_dims, generator=gen, dtype=torch.float64)
+    keep = torch.rand(len(x), generator=gen) < 0.3
+    w = torch.rand(cfg.n_output_dims, generator=gen)
+
+    x64, t64 = x.double().requires_grad_(True), table.double().requires_grad_(True)
+    ref = ref_encode(x64, t64, cfg)
+    (ref * g).sum().backward()
+    x64w = x.double().requires_grad_(True)
+    (ref_encode(x64w, table.double(), cfg) * g * w.double()).sum().backward()
+    for weights, ref_x in ((None, x64.grad), (w, x64w.grad)):
+        xt, tt = x.clone().requires_grad_(True), table.clone().requires_grad_(True)
+        enc = hash_grid_encode(xt, tt, cfg, x_grad_weights=weights, x_grad_mask=keep)
+        (enc * g.float()).sum().backward()
+        torch.testing.assert_close(enc.detach().double(), ref.detach(), atol=2e-5, rtol=0)
+        scale = t64.grad.abs().max().item()
+        torch.testing.assert_close(tt.grad.double(), t64.grad, atol=2e-5 * scale, rtol=1e-5)
+        want = torch.where(keep[:, None], ref_x, 0.0)
+        scale = ref_x.abs().max().item()
+        torch.testing.assert_close(xt.grad.double(), want, atol=1e-4 * scale, rtol=1e-4)
+        assert (xt.grad[~keep] == 0).all() and (ref_x[~keep].abs() > 0).any()
+    xt = x.clone().requires_grad_(True)
+    for bad in (keep[:-1], keep.to(torch.uint8)):
+        with pytest.raises(ValueError, match="x_grad_mask"):
+            hash_grid_encode(xt, table, cfg, x_grad_mask=bad)
