@@ -135,6 +135,8 @@ class PoseCalibration:
             start = s0 + cfg.refine_warmup * (1.0 - s0)
             self.settle = PoseSettle(cfg, sampler.windows, sampler.rig.intrinsics.fx, start)
         self.seen: torch.Tensor | None = None  # (G,) bool rows the last batch saw
+        # (2B,) bool rays of the last batch whose gradient reaches a pose (None: every ray)
+        self.grad_rays: torch.Tensor | None = None
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
         self.sharing = False  # the poses share one correction now (refine_shared_until)
         self.lr = 0.0  # this step's lr, on the host (the device may hold a copy)
@@ -185,13 +187,15 @@ class PoseCalibration:
         self, pose_idx: torch.Tensor, rays_o: torch.Tensor, rays_d: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The rays of windows longer than refine_win_max views, detached: same values, no
-        pose gradient; `seen` keeps only the rows a short window touched (no host read).
+        pose gradient; `seen` keeps only the rows a short window touched and `grad_rays` the
+        short windows' rays, for the field to skip the others' gradient (no host read).
         pose_idx: (2B,) grid rows (t0 rows, then t1 rows); rays_o, rays_d: (2B, 3)."""
         b, n = pose_idx.shape[0] // 2, len(self.refiner.base) - 1  # the n + 1 grid rows
         views = pose_idx[b:] - pose_idx[:b]
         views = torch.where(views < 0, views + n, views)  # a loop's t0 row wraps to its end
         long = views > self.cfg.refine_win_max
         long = long.repeat(2)[:, None]
+        self.grad_rays = ~long[:, 0]
         short = torch.zeros(len(self.refiner.base), dtype=torch.int32, device=pose_idx.device)
         short.scatter_add_(0, pose_idx, (~long[:, 0]).to(torch.int32))
         self.seen = self.refiner.param_rows(short > 0)

@@ -171,6 +171,12 @@ class SelfCalibration:
             reg = self.thresholds.regulariser(batch.pix)
         return rays_o, rays_d, target, reg
 
+    @property
+    def grad_rays(self) -> torch.Tensor | None:
+        """(2B,) bool, the last `apply`'s rays whose gradient reaches the calibration (the
+        field may skip the others'); None: every ray's, or none learnt from the rays."""
+        return None if self.pose_cal is None else self.pose_cal.grad_rays
+
     def zero_grad(self) -> None:
         self.optimizer.zero_grad(set_to_none=True)
         if self.pose_optimizer is not None:

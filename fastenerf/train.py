@@ -298,8 +298,10 @@ class Trainer:
         """Render the batch and compute the event loss; gradients zeroed for the backward."""
         cfg = self.cfg
         rays_o, rays_d, target, reg = batch.rays_o, batch.rays_d, batch.target, None
+        grad_rays = None
         if self.selfcal is not None:
             rays_o, rays_d, target, reg = self.selfcal.apply(batch)
+            grad_rays = self.selfcal.grad_rays
         with (
             record_function("render"),
             # a captured step must not keep autocast's cast weights from one replay to the next
@@ -311,6 +313,7 @@ class Trainer:
                 near=self.scene.config.near,
                 background=self.background,
                 train=True,
+                grad_rays=grad_rays,
             )
         with record_function("loss"):
             loss, parts = total_loss(

@@ -594,6 +594,51 @@ def test_ngp_compacted_samples_train_as_all_marched_ones(make, monkeypatch):
     assert f.pruned_capacity is None and "n_marched" not in _train_render(f, o, d)[0]
 
 
+def _detached_render(f, o, d, keep, grad_rays, seed: int = 3):
+    """`_train_render` with the rays outside `keep` detached, as pose refinement detaches a
+    long window's; `grad_rays` goes to the field."""
+    o, d = o.clone().requires_grad_(), d.clone().requires_grad_()
+    ro = torch.where(keep[:, None], o, o.detach())
+    rd = torch.where(keep[:, None], d, d.detach())
+    torch.manual_seed(seed)
+    out = f.render(ro, rd, near=1e-4, background=BG, train=True, grad_rays=grad_rays)
+    loss = (out["rgb"] - 0.3).square().mean() + out["depth"].mean() + out["distortion"]
+    f.zero_grad()
+    loss.backward()
+    grads = {k: p.grad.clone() for k, p in f.named_parameters() if p.grad is not None}
+    return out, {**grads, "rays_o": o.grad, "rays_d": d.grad}
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_grad_rays_skips_only_gradients_nobody_reads(make, backend, monkeypatch):
+    """grad_rays (the rays pose refinement learns from): pixels and every gradient the caller
+    reads are those without it; ngp's encoding skips the other rays' points (its x-gradient
+    mask), and the mask is what decides (the wrong one changes the rays' gradients)."""
+    o, d = hit_rays(24)
+    keep = torch.arange(24) % 3 == 0
+    ref, ref_g = _detached_render(make(backend), o, d, keep, None)
+    masks = []
+    if backend == "ngp":
+        encode = ngp_mod.hash_grid_encode
+
+        def spy(*args, x_grad_mask=None, **kw):
+            masks.append(x_grad_mask)
+            return encode(*args, x_grad_mask=x_grad_mask, **kw)
+
+        monkeypatch.setattr(ngp_mod, "hash_grid_encode", spy)
+    out, g = _detached_render(make(backend), o, d, keep, keep)
+    torch.testing.assert_close(out["rgb"], ref["rgb"], rtol=0, atol=0)
+    for k, v in g.items():
+        if k.startswith("rays_"):
+            assert v[~keep].abs().max() == 0 and v[keep].abs().min() > 0, k
+        torch.testing.assert_close(v, ref_g[k], rtol=1e-5, atol=1e-7 * float(v.abs().max()))
+    if backend == "ngp":
+        assert len(masks) == 1 and masks[0] is not None
+        assert 0 < int(masks[0].sum()) < len(masks[0])  # some points skipped, not all
+        _, wrong = _detached_render(make(backend), o, d, keep, ~keep)
+        assert not torch.allclose(wrong["rays_o"][keep], g["rays_o"][keep])
+
+
 def test_ngp_compacted_samples_in_fixed_buffers(make):
     """With fixed capacity the compacted samples get their own buffer, sized exactly on the
     first batch, then following the want at occupancy updates; a ray that either buffer has no

@@ -103,7 +103,7 @@ class BallField(Field):
         ph = torch.tensor([0.0, 1.0, 2.0], dtype=x.dtype)
         return 0.5 + 0.35 * torch.sin(4.0 * x[:, :1] + ph) * torch.cos(3.0 * x[:, 1:2] - ph)
 
-    def render(self, rays_o, rays_d, *, near, background, train):
+    def render(self, rays_o, rays_d, *, near, background, train, grad_rays=None):
         t = torch.linspace(1.0, 4.0, 48, dtype=rays_o.dtype)
         x = rays_o[:, None] + rays_d[:, None] * t[None, :, None]  # (R, S, 3)
         sigma = self.density(x.reshape(-1, 3)).reshape(x.shape[:2])
@@ -319,6 +319,7 @@ def test_refine_win_max_takes_the_pose_gradient_from_short_windows_only(ball):
     assert torch.equal(seen1, touched["short"])
     assert g1[only_long].abs().max() == 0 and g0[only_long, :3].abs().min() > 0  # turns only
     assert torch.equal(g1[only_short], g0[only_short]) and g1[only_short, :3].abs().min() > 0
+    assert torch.equal(pc.grad_rays, (length <= 2).repeat(2))  # for the field to skip the rest
 
 
 def test_refine_win_max_counts_a_wrapped_windows_views(ball):
@@ -395,6 +396,29 @@ def test_a_run_whose_poses_settle_lengthens_its_windows_and_resumes_exactly(
     lines = (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()
     lengths = [json.loads(line)["field_win_max"] for line in lines]
     assert lengths[0] == c.win_max and lengths[-1] == c.settle_win_max
+
+
+@pytest.mark.parametrize("refine_win_max", [None, 2])
+def test_the_trainer_hands_the_field_the_rays_poses_learn_from(scene, tmp_path, refine_win_max):
+    """Every training render gets the calibration's grad_rays: with refine_win_max the short
+    windows' rays (some, not all, of a batch of windows up to win_max), else None."""
+    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, win_max=8)
+    tr = Trainer(scene, tiny(**cfg, refine_win_max=refine_win_max), tmp_path / "r")
+    seen, render = [], tr.field.render
+
+    def spy(*args, grad_rays=None, **kw):
+        seen.append(None if grad_rays is None else grad_rays.clone())
+        return render(*args, grad_rays=grad_rays, **kw)
+
+    tr.field.render = spy
+    tr.run(progress=False)
+    assert len(seen) == tr.cfg.steps
+    if refine_win_max is None:
+        assert all(m is None for m in seen)
+        return
+    assert torch.equal(seen[-1], tr.selfcal.grad_rays)
+    both = torch.stack(seen)
+    assert both.dtype == torch.bool and both.any() and not both.all()
 
 
 # --------------------------------------------------------------------------------- thresholds

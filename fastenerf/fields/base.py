@@ -74,11 +74,14 @@ class Field(torch.nn.Module):
         near: float,
         background: torch.Tensor | None,
         train: bool,
+        grad_rays: torch.Tensor | None = None,
     ) -> RenderOutput:
         """Volume-render rays: rays_o (R, 3) world units, rays_d (R, 3) unit.
 
         background: (3,) display-space colour composited behind the field, or None (black,
         no background term). `train` turns on stochastic sampling and training-only extras.
+        grad_rays: optional (R,) bool, the rays whose gradient w.r.t. rays_o and rays_d the
+        caller reads (it detached the others); a field may skip the others' (None: all).
         """
         raise NotImplementedError
 

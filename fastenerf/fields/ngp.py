@@ -212,8 +212,12 @@ class NGPField(Field):
         u = torch.nan_to_num((x - lo) / size, nan=0.5, posinf=1.0, neginf=0.0)
         return u.clamp(0.0, 1.0).contiguous()
 
-    def _geometry(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3)."""
+    def _geometry(
+        self, x: torch.Tensor, x_grad_mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3);
+        x_grad_mask: optional (N,) bool, the points whose gradient w.r.t. x is read (the
+        others get none: `hash_grid_encode`)."""
         xn, w, cfg = self._normalise(_cast(x, torch.float32)), None, self.grid_cfg
         table = _cast(self.table, torch.float32)
         if self.level_weights is not None:
@@ -222,9 +226,11 @@ class NGPField(Field):
         if w is not None and self.level_weights_mode == "gradient":
             # coarse-to-fine on the pose gradient only (fields/level_weights.py), in the
             # encoding's backward: one forward, the x-gradient weighted
-            feats = hash_grid_encode(xn, table, cfg, x_grad_weights=w.float())
+            feats = hash_grid_encode(
+                xn, table, cfg, x_grad_weights=w.float(), x_grad_mask=x_grad_mask
+            )
         else:
-            feats = hash_grid_encode(xn, table, cfg)
+            feats = hash_grid_encode(xn, table, cfg, x_grad_mask=x_grad_mask)
             feats = feats if w is None else feats * w
         h = self.density_net(_cast(feats, self.density_net[0].weight.dtype))
         net = self.options.network
@@ -256,7 +262,9 @@ class NGPField(Field):
         check_points("d", d, "NGPField.color")
         return self._radiance(self._geometry(x)[1], d)
 
-    def render(self, rays_o, rays_d, *, near: float, background, train: bool) -> RenderOutput:
+    def render(
+        self, rays_o, rays_d, *, near: float, background, train: bool, grad_rays=None
+    ) -> RenderOutput:
         check_points("rays_o", rays_o, "NGPField.render", finite=not train)
         check_points("rays_d", rays_d, "NGPField.render", finite=not train)
         if rays_o.shape != rays_d.shape:
@@ -277,7 +285,10 @@ class NGPField(Field):
         with record_function("field"):
             # per-ray backward: the rays are learnt under pose refinement (kernels/ray_points)
             x, d = ray_points(rays_o, rays_d, 0.5 * (t_starts + t_ends), ray_idx, packed_info)
-            sigma, geo = self._geometry(x)
+            keep = None  # the samples whose position gradient is read (the encoding's mask)
+            if grad_rays is not None and x.requires_grad:
+                keep = grad_rays.index_select(0, ray_idx)
+            sigma, geo = self._geometry(x, keep)
             rgb = self._radiance(geo, d)
         with record_function("composite"):
             out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)

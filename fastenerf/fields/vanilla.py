@@ -273,8 +273,10 @@ class VanillaField(Field):
         near: float,
         background: torch.Tensor | None,
         train: bool,
+        grad_rays: torch.Tensor | None = None,
     ) -> RenderOutput:
-        """Volume-render rays (R, 3) each; adds `rgb_coarse` (R, 3) for the coarse-level loss."""
+        """Volume-render rays (R, 3) each; adds `rgb_coarse` (R, 3) for the coarse-level loss.
+        grad_rays is not used: every ray's gradient is computed (autograd's own)."""
         check_points("rays_o", rays_o, "VanillaField.render", finite=not train)
         check_points("rays_d", rays_d, "VanillaField.render", finite=not train)
         bad = None
