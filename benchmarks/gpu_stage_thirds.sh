@@ -9,6 +9,7 @@
 #   3. carry [".gpu-warp-b0"]                           command: bash .gpu-warp-b0/stage.sh
 #   4. carry [".gpu-warp-b"]   command: source .gpu-warp-b/activate.sh && <your command>
 # Later calls on that warm machine: source /var/tmp/gpu-warp/activate.sh && <your command>.
+# A scene too large to go beside the tree in one call: benchmarks/gpu_carry_scene.sh.
 set -euo pipefail
 A=.gpu-warp-a/warp.so.xz.part00
 B=.gpu-warp-b/warp.so.xz.part01

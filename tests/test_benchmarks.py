@@ -620,3 +620,48 @@ def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
     for args in ([], [str(tmp_path / "nothing"), "5"], [str(res), "soon"]):
         r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True, env=env)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_gpu_carry_scene_cuts_a_scene_into_carries_the_last_joins(tmp_path):
+    """gpu_carry_scene.sh: parts of PART_MB MiB whose stage.sh scripts, run in order, land the
+    scene byte for byte in DATA and touch DATA/NAME.ready only at the last; the last run
+    before the others is refused; bad arguments are one line and exit code 2, nothing
+    written, old parts left alone."""
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu_carry_scene.sh"
+    scene = tmp_path / "big"
+    (scene / "test").mkdir(parents=True)
+    blob = np.random.default_rng(0).bytes(int(2.5 * 2**20))
+    (scene / "events.npz").write_bytes(blob)
+    (scene / "test" / "poses.npz").write_bytes(b"poses")
+
+    def run(*args, data=None):
+        env = {**os.environ, **({"DATA": str(data)} if data else {})}
+        return subprocess.run(["bash", *map(str, args)], capture_output=True, text=True, env=env)
+
+    r = run(script, scene, tmp_path / "c" / "big", 1)
+    assert r.returncode == 0, r.stderr
+    parts = sorted((tmp_path / "c").iterdir())
+    assert [p.name for p in parts] == ["big.p0", "big.p1", "big.p2"]
+    early = tmp_path / "early"
+    r = run(parts[-1] / "stage.sh", data=early)
+    assert r.returncode == 2 and "1 of 3 parts" in r.stderr and not (early / "big").exists()
+    data = tmp_path / "data"
+    for p in parts:
+        assert not (data / "big.ready").exists()
+        assert run(p / "stage.sh", data=data).returncode == 0
+    assert (data / "big.ready").exists()
+    assert (data / "big" / "events.npz").read_bytes() == blob
+    assert (data / "big" / "test" / "poses.npz").read_bytes() == b"poses"
+    assert sorted(x.name for x in data.iterdir()) == ["big", "big.ready"]  # parts cleaned up
+    before = {p: sorted(x.name for x in p.iterdir()) for p in parts}
+    for args, words in (
+        ([], "usage"),
+        ([tmp_path / "none", tmp_path / "x"], "is not a folder"),
+        ([scene, tmp_path / "y", "0"], "PART_MB"),
+        ([scene, tmp_path / "c" / "big"], "exists"),
+    ):
+        r = run(script, *args)
+        err = r.stderr.strip()
+        assert r.returncode == 2 and len(err.splitlines()) == 1 and words in err, (args, err)
+    assert not any((tmp_path / n).exists() for n in ("x.p0", "y.p0"))
+    assert before == {p: sorted(x.name for x in p.iterdir()) for p in parts}

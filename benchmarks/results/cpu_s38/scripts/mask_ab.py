@@ -21,8 +21,15 @@ TRAIN.update(win_max=200, refine_win_max=50)
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) not in (2, 3) or not Path(argv[0]).is_dir():
-        print("mask_ab.py: error: usage: mask_ab.py SCENE OUT [REPEATS]", file=sys.stderr)
+    why = None
+    if len(argv) not in (2, 3):
+        why = "usage: mask_ab.py SCENE OUT [REPEATS]"
+    elif not Path(argv[0]).is_dir():
+        why = f"SCENE {argv[0]} is not a folder"
+    elif len(argv) == 3 and not (argv[2].isdigit() and int(argv[2]) > 0):
+        why = f"REPEATS must be a whole number >= 1, got {argv[2]!r}"
+    if why:
+        print(f"mask_ab.py: error: {why}", file=sys.stderr)
         return 2
     out, repeats = Path(argv[1]), int(argv[2]) if len(argv) == 3 else 2
     if out.exists():
