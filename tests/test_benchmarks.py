@@ -665,3 +665,58 @@ def test_gpu_carry_scene_cuts_a_scene_into_carries_the_last_joins(tmp_path):
         assert r.returncode == 2 and len(err.splitlines()) == 1 and words in err, (args, err)
     assert not any((tmp_path / n).exists() for n in ("x.p0", "y.p0"))
     assert before == {p: sorted(x.name for x in p.iterdir()) for p in parts}
+
+
+def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
+    """run_table: PSNR at the asked times ("—" where none was scheduled), Δ against the same
+    scene's --base row, step time, samples, compaction, error left and settled_at from the
+    run's config.json; --out is written once, an existing one refused and left alone."""
+    from benchmarks import run_table
+
+    def result(folder, psnrs, settled, **last):
+        pts = [
+            {"target_s": t, "train_s": t + 0.01, "psnr": v, "step": 100 * t}
+            for t, v in zip((5.0, 10.0, 60.0), psnrs, strict=True)
+        ]
+        pts[-1].update(last)
+        run = {"points": pts, "train_s": 60.0, "step": 10_000}
+        folder.mkdir(parents=True)
+        (folder / "error_vs_time.json").write_text(json.dumps({"runs": [run]}))
+        conf = folder / "runs" / "s-ngp" / "config.json"
+        conf.parent.mkdir(parents=True)
+        calib = None if settled is None else {"poses": {"settled_at": settled}}
+        conf.write_text(json.dumps({"self_calibration": calib}))
+
+    out = tmp_path / "res" / "s"
+    result(out / "none0", (30.0, 31.0, 32.0), None, samples_per_step=9e5)
+    result(
+        out / "ref2",
+        (25.0, 26.0, 29.5),
+        0.27,
+        samples_per_step=1.4e6,
+        marched_per_step=2.1e6,
+        compacted_share=1.0,
+        pose_error_deg=0.0871,
+    )
+    args = [str(out / "none0"), str(out / "ref2"), "--at", "5", "15", "60", "--base", "none0"]
+    assert run_table.main(args) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0].startswith("| run | 5 s | 15 s | 60 s | Δ | ms/step |") and len(lines) == 4
+    assert lines[2] == "| s/none0 | 30.00 | — | 32.00 | +0.00 | 6.00 | 0.90 | — | — | — | — |"
+    assert lines[3] == (
+        "| s/ref2 | 25.00 | — | 29.50 | -2.50 | 6.00 | 1.40 | 2.10 | 1.00 | 0.087° | 27% |"
+    )
+    table = tmp_path / "t.md"
+    assert run_table.main([f"mine={out / 'ref2'}", "--out", str(table)]) == 0
+    assert "| mine | 25.00 | 26.00 | — | — | 29.50 | — |" in table.read_text()
+    capsys.readouterr()
+    for bad, words in (
+        ([str(out / "ref2"), "--out", str(table)], "exists"),
+        ([str(out / "ref2"), "--out", str(tmp_path / "t.txt")], ".md file"),
+        ([str(tmp_path / "nothing")], "no error_vs_time.json here"),
+        ([str(out / "ref2"), "--at", "0"], "--at"),
+    ):
+        assert run_table.main(bad) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (bad, err)
+    assert "| mine |" in table.read_text() and not (tmp_path / "t.txt").exists()

@@ -1,0 +1,144 @@
+"""A Markdown table of several error-vs-time outputs, one row per run: what RESULTS.md's
+per-lease tables hold.
+
+    python -m benchmarks.run_table DIR [DIR ...] [--at 5 10 15 30 60] [--base NAME]
+        [--out TABLE.md]
+
+DIR is an `error_vs_time` output folder (its error_vs_time.json; the first run in it), or
+LABEL=DIR. Without a label a row is named by the folder's last two parts, SCENE/NAME as
+`benchmarks/gpu_runs60.sh` lays its runs out. Columns:
+- PSNR (dB) at each `--at` time: the evaluation scheduled at that training time, "—" if none;
+- Δ: the last PSNR minus that of the row `SCENE/BASE` of the same scene (`--base`, e.g.
+  none0: the clean run), where there is one;
+- ms/step: training seconds over steps (warm-up and evaluations excluded);
+- trained / marched: samples per step at the last evaluation, millions (marched only where
+  compaction ran and the run records it);
+- compacting: the share of the last evaluation interval's steps that compacted;
+- error left: rotation error the poses still have (°, perturbed runs);
+- settled: the budget fraction at which the windows lengthened (`refine_settle_px`), from
+  the run's config.json.
+Printed, or written atomically to --out (an existing file is refused; nothing is lost).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from fastenerf.errors import InputError, require
+from fastenerf.io import atomic_path
+
+from .cli import benchmark_main
+
+DASH = "—"
+
+
+def load_run(folder: str | Path) -> dict[str, Any]:
+    """The first run of `folder`/error_vs_time.json, with `settled_at` (None if it never
+    lengthened its windows) from its run folder's config.json where there is one."""
+    path = Path(folder) / "error_vs_time.json"
+    if not path.is_file():
+        raise InputError(f"{path}: no error_vs_time.json here")
+    try:
+        runs = json.loads(path.read_text()).get("runs") or []
+    except (json.JSONDecodeError, AttributeError) as e:
+        raise InputError(f"{path}: not an error_vs_time result ({e})") from None
+    if not runs or not runs[0].get("points"):
+        raise InputError(f"{path}: no run with evaluation points in it")
+    run = dict(runs[0])
+    run["settled_at"] = None
+    for conf in sorted(Path(folder).glob("runs/*/config.json"))[:1]:
+        try:
+            calib = json.loads(conf.read_text()).get("self_calibration") or {}
+        except (json.JSONDecodeError, AttributeError) as e:
+            raise InputError(f"{conf}: not a run's config.json ({e})") from None
+        run["settled_at"] = (calib.get("poses") or {}).get("settled_at")
+    return run
+
+
+def parse_item(item: str) -> tuple[str, str]:
+    """'LABEL=DIR' or 'DIR' -> (label, dir); a bare DIR is labelled by its last two parts."""
+    label, eq, folder = item.rpartition("=")
+    if not eq:
+        parts = Path(item.rstrip("/")).parts
+        return "/".join(parts[-2:]), item
+    if not label or not folder:
+        raise InputError(f"{item!r}: expected DIR or LABEL=DIR")
+    return label, folder
+
+
+def _num(v: Any, fmt: str) -> str:
+    ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+    return format(v, fmt) if ok else DASH
+
+
+def row(label: str, run: dict, at: list[float], base: dict | None) -> list[str]:
+    """One table row (strings) of `run` (`load_run`), Δ against `base` (or None)."""
+    pts = run["points"]
+    by_target = {round(float(p.get("target_s", -1)), 3): p for p in pts}
+    last = pts[-1]
+    cells = [label]
+    cells += [_num(by_target.get(round(t, 3), {}).get("psnr"), ".2f") for t in at]
+    delta = None if base is None else last.get("psnr", math.nan) - base["points"][-1]["psnr"]
+    cells.append(_num(delta, "+.2f"))
+    steps, train_s = run.get("step") or last.get("step"), run.get("train_s") or last["train_s"]
+    cells.append(_num(1000.0 * train_s / steps if steps else None, ".2f"))
+    trained, marched = last.get("samples_per_step"), last.get("marched_per_step")
+    cells.append(_num(None if trained is None else trained / 1e6, ".2f"))
+    cells.append(_num(None if marched is None else marched / 1e6, ".2f"))
+    cells.append(_num(last.get("compacted_share"), ".2f"))
+    err = last.get("pose_error_deg")
+    cells.append(DASH if err is None else f"{err:.3f}°")
+    cells.append(_num(run.get("settled_at"), ".0%"))
+    return cells
+
+
+def table(items: list[str], at: list[float], base: str | None = None) -> str:
+    """The Markdown table of `items` ('[LABEL=]DIR'), every folder read before any row."""
+    parsed = [parse_item(i) for i in items]
+    runs = [load_run(folder) for _, folder in parsed]
+    by_label = dict(zip((label for label, _ in parsed), runs, strict=True))
+    head = ["run", *[f"{t:g} s" for t in at], "Δ", "ms/step", "trained M", "marched M"]
+    head += ["compacting", "error left", "settled"]
+    lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
+    for (label, _), run in zip(parsed, runs, strict=True):
+        ref = None
+        if base is not None and "/" in label:
+            ref = by_label.get(label.rsplit("/", 1)[0] + "/" + base)
+        lines.append("| " + " | ".join(row(label, run, at, ref)) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("items", nargs="+", metavar="[LABEL=]DIR")
+    p.add_argument("--at", nargs="+", type=float, default=[5, 10, 15, 30, 60],
+                   help="training times (s) whose PSNR is shown")  # fmt: skip
+    p.add_argument("--base", default=None, help="the NAME whose row of each scene Δ is against")
+    p.add_argument("--out", default=None, help="Markdown file to write (default: print)")
+
+
+def run(args: argparse.Namespace) -> int:
+    require(all(t > 0 and math.isfinite(t) for t in args.at), "--at: times must be > 0")
+    if args.out is not None:
+        out = Path(args.out)
+        require(out.suffix.lower() == ".md", f"{out}: the table is a .md file")
+        require(not out.exists(), f"{out} exists: give a new file (nothing was written)")
+    text = table(args.items, args.at, args.base)
+    if args.out is None:
+        print(text, end="")
+        return 0
+    with atomic_path(args.out) as tmp:
+        tmp.write_text(text)
+    print(args.out)
+    return 0
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    return benchmark_main("run_table", __doc__, add_arguments, run, argv, prog)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
