@@ -5,10 +5,13 @@ tree's), without it (SelfCalibration.grad_rays patched to None) and with no refi
     python benchmarks/results/cpu_s38/scripts/mask_ab.py SCENE OUT [REPEATS]
 
 Refined (refine_start 0) on windows up to 200 views, the pose gradient from those up to 50
-(what the GPU default trains on once the poses settle), 2,048 rays per step.
+(what the GPU default trains on once the poses settle), 2,048 rays per step on the CPU. On the
+GPU: `DEVICE=cuda WARMUP=1500` (the preset's rays per step; warm-up steps past the early
+cone and the occupancy grid's first carving).
 """
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -16,8 +19,10 @@ import benchmarks.profile_step as P
 from fastenerf.errors import InputError
 from fastenerf.self_calibration import SelfCalibration
 
-TRAIN = {"rays_per_step": 2048, "refine_poses": True, "refine_start": 0.0}
-TRAIN.update(win_max=200, refine_win_max=50)
+DEVICE, WARMUP = os.environ.get("DEVICE", "cpu"), os.environ.get("WARMUP", "100")
+TRAIN = {"refine_poses": True, "refine_start": 0.0, "win_max": 200, "refine_win_max": 50}
+if DEVICE == "cpu":
+    TRAIN["rays_per_step"] = 2048
 
 
 def main(argv: list[str]) -> int:
@@ -28,6 +33,8 @@ def main(argv: list[str]) -> int:
         why = f"SCENE {argv[0]} is not a folder"
     elif len(argv) == 3 and not (argv[2].isdigit() and int(argv[2]) > 0):
         why = f"REPEATS must be a whole number >= 1, got {argv[2]!r}"
+    elif DEVICE not in ("cpu", "cuda") or not WARMUP.isdigit():
+        why = f"DEVICE must be cpu or cuda and WARMUP a whole number, got {DEVICE}, {WARMUP}"
     if why:
         print(f"mask_ab.py: error: {why}", file=sys.stderr)
         return 2
@@ -44,7 +51,7 @@ def main(argv: list[str]) -> int:
             variant = f"{name}=" + json.dumps({"train": train})
             SelfCalibration.grad_rays = prop if name == "mask" else property(lambda s: None)
             d = out / f"{name}_{r}"
-            args = ["--scene", argv[0], "--device", "cpu", "--warmup", "100", "--steps", "20"]
+            args = ["--scene", argv[0], "--device", DEVICE, "--warmup", WARMUP, "--steps", "20"]
             try:
                 P.main([*args, "--variant", variant, "--out", str(d)])
             except InputError as e:
