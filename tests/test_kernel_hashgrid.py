@@ -243,17 +243,24 @@ def test_benchmark_smoke_cpu():
         assert r[k] > 0 and math.isfinite(r[k])
 
 
+def smooth_points_and_table(cfg):
+    """(generator, points away from every level's cell faces (the x-gradient's kinks), a
+    random table), freshly seeded each call."""
+    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
+    x = random_points(600, cfg, gen)
+    res = torch.tensor(cfg.resolutions, dtype=torch.float64)
+    frac = torch.frac(x.double()[:, None, :] * res[None, :, None])
+    x = x[((frac > 1e-3) & (frac < 1 - 1e-3)).all(2).all(1)]
+    table = (torch.rand(cfg.n_params, cfg.n_features, generator=gen) * 2 - 1).float()
+    return gen, x, table
+
+
 def test_x_grad_weights_weight_only_the_position_gradient():
     """x_grad_weights (coarse-to-fine on the pose gradient): the value and the table's
     gradient are the unweighted ones; the x-gradient is the float64 reference's for the
     cotangent times the weights."""
     cfg = SMALL
-    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
-    x = random_points(600, cfg, gen)
-    res = torch.tensor(cfg.resolutions, dtype=torch.float64)
-    frac = torch.frac(x.double()[:, None, :] * res[None, :, None])
-    x = x[((frac > 1e-3) & (frac < 1 - 1e-3)).all(2).all(1)]  # away from the kinks
-    table = (torch.rand(cfg.n_params, cfg.n_features, generator=gen) * 2 - 1).float()
+    gen, x, table = smooth_points_and_table(cfg)
     w = torch.rand(cfg.n_output_dims, generator=gen)
     w[: cfg.n_features] = 1.0  # a schedule keeps level 0
     w[-cfg.n_features :] = 0.0  # and cuts the finest
@@ -282,12 +289,7 @@ def test_x_grad_mask_zeroes_only_the_masked_points_position_gradient():
     exactly 0, the others' the float64 reference's, with the coarse-to-fine weights too; the
     value and the table's gradient are the unmasked ones."""
     cfg = SMALL
-    gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
-    x = random_points(600, cfg, gen)
-    res = torch.tensor(cfg.resolutions, dtype=torch.float64)
-    frac = torch.frac(x.double()[:, None, :] * res[None, :, None])
-    x = x[((frac > 1e-3) & (frac < 1 - 1e-3)).all(2).all(1)]  # away from the kinks
-    table = (torch.rand(cfg.n_params, cfg.n_features, generator=gen) * 2 - 1).float()
+    gen, x, table = smooth_points_and_table(cfg)
     g = torch.randn(len(x), cfg.n_output_dims, generator=gen, dtype=torch.float64)
     keep = torch.rand(len(x), generator=gen) < 0.3
     w = torch.rand(cfg.n_output_dims, generator=gen)
