@@ -421,6 +421,31 @@ def test_the_trainer_hands_the_field_the_rays_poses_learn_from(scene, tmp_path, 
     assert both.dtype == torch.bool and both.any() and not both.all()
 
 
+def test_the_x_gradient_mask_changes_nothing_a_refined_ngp_run_learns(scene, tmp_path, monkeypatch):
+    """An ngp run refining its poses from the short windows only ends with the same field and
+    corrections, bit for bit, whether its encoding skips the long windows' position gradient
+    (grad_rays) or computes it for nothing (None)."""
+    from fastenerf.config import train_preset
+
+    ngp = {"n_levels": 4, "log2_table_size": 10, "max_resolution": 32}
+    cfg = dict(
+        TINY, steps=6, refine_poses=True, refine_start=0.0, refine_warmup=0.0, refine_gate=0.0
+    )
+    cfg.update(win_max=8, refine_win_max=2, perturb=PerturbConfig(pose_error_deg=1.0))
+    runs = {}
+    for name in ("mask", "none"):
+        if name == "none":
+            monkeypatch.setattr(SelfCalibration, "grad_rays", property(lambda self: None))
+        c = train_preset("fast", "ngp", backend_options=ngp, **cfg)
+        tr = Trainer(scene, c, tmp_path / name)
+        tr.run(progress=False)
+        params = {k: v.detach().clone() for k, v in tr.field.named_parameters()}
+        runs[name] = (params, tr.selfcal.poses.delta.detach().clone())
+    (fa, pa), (fb, pb) = runs["mask"], runs["none"]
+    assert pa.abs().max() > 0 and torch.equal(pa, pb)
+    assert all(torch.equal(fa[k], fb[k]) for k in fa)
+
+
 # --------------------------------------------------------------------------------- thresholds
 
 
