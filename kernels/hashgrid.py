@@ -240,6 +240,8 @@ def _kernels(
         table: wp.array(dtype=vec),
         levels: wp.array(dtype=wp.vec4i),
         n_levels: int,
+        weights: wp.array(dtype=float),
+        weighted: int,
         rows: wp.array(dtype=wp.uint8),
         masked: int,
         grad_x: wp.array(dtype=wp.vec3),
@@ -253,6 +255,9 @@ def _kernels(
         for lv in range(n_levels):
             level = levels[lv]
             g = load(grad, i, lv)
+            if weighted != 0:  # x_grad_weights: this level's columns weighted in place
+                for k in range(F):
+                    g[k] = g[k] * weights[lv * F + k]
             c, f = cell_of(p, level[0])
             d = wp.vec3()
             for k in range(8):
@@ -319,6 +324,12 @@ def _tracked_backward(F: int):
 def _no_rows(device: str) -> wp.array:
     """The mask argument of an unmasked backward(x) (one byte, never read)."""
     return wp.zeros(1, dtype=wp.uint8, device=device)
+
+
+@functools.cache
+def _no_weights(device: str) -> wp.array:
+    """The weights argument of an unweighted backward(x) (one float, never read)."""
+    return wp.zeros(1, dtype=float, device=device)
 
 
 @functools.cache
@@ -470,9 +481,8 @@ class _HashGridEncode(torch.autograd.Function):
                 )
         if ctx.needs_input_grad[0]:
             grad_x = torch.empty_like(x)
-            w = ctx.x_grad_weights
-            gx = g if w is None else g * w  # held here: a Warp view does not own its memory
-            mask = ctx.x_grad_mask
+            w, mask = ctx.x_grad_weights, ctx.x_grad_mask
+            weights = _no_weights(dev) if w is None else fast_view(w)
             rows = _no_rows(dev) if mask is None else fast_view(mask.view(torch.uint8))
             if n:
                 launch(
@@ -481,10 +491,12 @@ class _HashGridEncode(torch.autograd.Function):
                     x,
                     [
                         fast_view(x, wp.vec3),
-                        g_wp if w is None else fast_view(gx),
+                        g_wp,
                         fast_view(table, vec),
                         _levels_wp(cfg, dev),
                         L,
+                        weights,
+                        int(w is not None),
                         rows,
                         int(mask is not None),
                         fast_view(grad_x, wp.vec3),
@@ -541,4 +553,6 @@ def hash_grid_encode(
             f"{tuple(x_grad_mask.shape)} {x_grad_mask.dtype} on {x_grad_mask.device}"
         )
     mask = None if x_grad_mask is None else x_grad_mask.contiguous()
-    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, x_grad_weights, mask)
+    w = x_grad_weights
+    w = None if w is None else w.to(x.device, torch.float32, copy=False).contiguous()
+    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, w, mask)
