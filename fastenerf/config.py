@@ -169,12 +169,6 @@ class TrainConfig:
     settle_win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
     """The field's longest window once the poses settle (refine_settle_px), views. Default:
     the fast preset's long windows, FAST_WINDOW_FRACTION of the loop (at least win_max)."""
-    refine_hold_start: float = 0.0
-    """While refining poses, the field's lr is 0 from this budget fraction to refine_hold_end:
-    the poses learn against a field held fixed, which cannot absorb their error meanwhile
-    (off while refine_hold_end <= refine_hold_start; the default)."""
-    refine_hold_end: float = 0.0
-    """Budget fraction where the field learns again (see refine_hold_start)."""
     refine_optimizer: Literal["adam", "row-adam"] = "row-adam"
     """adam: one Adam over every pose row; row-adam: lazy, a row steps when a batch sees it."""
     refine_beta1: float = field(default=0.9, metadata={"min": 0.0, "max": 0.9999})
@@ -235,8 +229,7 @@ class TrainConfig:
         for key in ("refine_lr", "refine_lr_final", "threshold_lr"):
             v = getattr(self, key)
             _check(0 < v <= 1, where, key, f"must be in (0, 1], got {v}")
-        fractions = ("refine_c2f_start", "refine_c2f_end", "refine_start", "refine_warmup")
-        for key in (*fractions, "refine_hold_start", "refine_hold_end"):
+        for key in ("refine_c2f_start", "refine_c2f_end", "refine_start", "refine_warmup"):
             v = getattr(self, key)
             _check(0 <= v <= 1, where, key, f"must be a budget fraction in [0, 1], got {v}")
         w, n = self.threshold_pixel_weight, self.smooth_poses
@@ -259,8 +252,6 @@ class TrainConfig:
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
         ok = self.refine_poses or self.refine_settle_px is None
         _check(ok, where, "refine_settle_px", "needs refine_poses (it watches the corrections)")
-        ok = self.refine_poses or self.refine_hold_end <= self.refine_hold_start
-        _check(ok, where, "refine_hold_end", "needs refine_poses (the field waits for them)")
         ok = self.settle_win_max is None or self.refine_settle_px is not None
         _check(ok, where, "settle_win_max", "needs refine_settle_px (when the windows lengthen)")
         k, shared = self.refine_knots, self.refine_shared or self.refine_shared_until > 0

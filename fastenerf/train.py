@@ -200,11 +200,8 @@ class Trainer:
 
     def lr_at(self, step: int) -> float:
         """Learning rate for `step`: warm-up, then constant or exponential decay to lr_final
-        (held at lr until the budget fraction lr_decay_start, then decayed over the rest); 0
-        while refinement holds the field (refine_hold_start..refine_hold_end)."""
+        (held at lr until the budget fraction lr_decay_start, then decayed over the rest)."""
         c = self.cfg
-        if c.refine_poses and c.refine_hold_start <= self.progress(step) < c.refine_hold_end:
-            return 0.0
         lr = c.lr
         if c.lr_final is not None and c.lr_final != c.lr:
             s = c.lr_decay_start

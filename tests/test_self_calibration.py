@@ -446,38 +446,6 @@ def test_the_x_gradient_mask_changes_nothing_a_refined_ngp_run_learns(scene, tmp
     assert all(torch.equal(fa[k], fb[k]) for k in fa)
 
 
-def test_refine_hold_keeps_the_field_fixed_while_the_poses_learn(scene, tmp_path):
-    """refine_hold_start..end: over those budget fractions the field's parameters do not move
-    (lr 0, on the row-sparse table too) while the poses do; before and after, both learn. It
-    needs refine_poses."""
-    from fastenerf.config import train_preset
-
-    ngp = {"n_levels": 4, "log2_table_size": 10, "max_resolution": 32}
-    cfg = dict(TINY, steps=8, refine_poses=True, refine_start=0.0, refine_warmup=0.0)
-    cfg.update(refine_gate=0.0, perturb=PerturbConfig(pose_error_deg=1.0))
-    c = train_preset("fast", "ngp", backend_options=ngp, **cfg, refine_hold_start=0.25)
-    c.refine_hold_end = 0.75
-    tr = Trainer(scene, c.validate(), tmp_path / "hold")
-
-    def state():
-        field = {k: v.detach().clone() for k, v in tr.field.named_parameters()}
-        return field, tr.selfcal.poses.delta.detach().clone()
-
-    snaps = [state()]
-    for _ in range(8):
-        tr.step()
-        snaps.append(state())
-    pairs = zip(snaps[:-1], snaps[1:], strict=True)
-    same = [all(torch.equal(a[0][k], b[0][k]) for k in a[0]) for a, b in pairs]
-    assert same == [False, False, True, True, True, True, False, False]  # steps 2..5 held
-    assert not torch.equal(snaps[2][1], snaps[6][1])  # the poses learnt meanwhile
-    assert [tr.lr_at(s) == 0 for s in range(8)] == [False] * 2 + [True] * 4 + [False] * 2
-    with pytest.raises(InputError, match="refine_hold_end"):
-        TrainConfig(refine_hold_end=0.5).validate()
-    with pytest.raises(InputError, match="refine_hold_start"):
-        TrainConfig(refine_poses=True, refine_hold_start=1.5).validate()
-
-
 # --------------------------------------------------------------------------------- thresholds
 
 
