@@ -9,7 +9,10 @@ run (with the motion prior) three ways on one scene, CPU:
 - pause: joint from a new field, the field held fixed from 40 % to 70 % of the steps.
 (The runs in results/cpu_s38/frozen/ were made before this line was fixed: their half and
 pause runs, like warm, started from the clean field.)
-MODES (environment, comma-separated) picks some of joint, frozen, warm, half, pause.
+- slow03 / slow01: joint from a new field, the field's lr x 0.3 over the first 40 % / x 0.1
+  over the first 20 % of the steps (the poses' lr as always).
+MODES (environment, comma-separated) picks some of joint, frozen, warm, half, pause, slow03,
+slow01.
 
     PYTHONPATH=. python benchmarks/results/cpu_s38/scripts/frozen_field.py SCENE OUT [STEPS]
 
@@ -30,6 +33,7 @@ from fastenerf.train import Trainer
 
 PRIOR = {"smooth_poses": 121, "smooth_order": 1}  # the CPU pose study's (300 views)
 PAUSES = {"half": (0.5, 1.0), "pause": (0.4, 0.7)}  # the field held fixed over these fractions
+SLOWS = {"slow03": (0.3, 0.4), "slow01": (0.1, 0.2)}  # (field lr factor, until this fraction)
 MODES = os.environ.get("MODES", "joint,frozen,warm,half").split(",")
 
 
@@ -67,6 +71,9 @@ def main(argv: list[str]) -> int:
             if mode in PAUSES:
                 lo, hi = (int(f * steps) for f in PAUSES[mode])
                 tr.lr_at = lambda s, f=tr.lr_at, lo=lo, hi=hi: 0.0 if lo <= s < hi else f(s)
+            if mode in SLOWS:
+                k, end = SLOWS[mode][0], int(SLOWS[mode][1] * steps)
+                tr.lr_at = lambda s, f=tr.lr_at, k=k, end=end: f(s) * (k if s < end else 1.0)
             tr.run(progress=False)
             res[mode] = {"curve": curve(out / mode)}
             print(mode, res[mode]["curve"][-1], flush=True)
