@@ -8,8 +8,9 @@
 # Writes OUT_PREFIX.p0, OUT_PREFIX.p1, ... (PART_MB MiB each, default 14). Carry one per call,
 # in order, each with the command `bash OUT_PREFIX.pK/stage.sh` (DATA: /var/tmp/data unless set
 # on the machine). The scene's folder name is the name it gets there.
-# Bad input (no SCENE_DIR, a PART_MB that is no whole number, an OUT_PREFIX.p* that exists)
-# ends with one line on stderr and exit code 2 before anything is written.
+# Bad input (no SCENE_DIR, a PART_MB that is no whole number, an OUT_PREFIX.p* that exists,
+# a folder for them that cannot be made) ends with one line on stderr and exit code 2 before
+# anything is written.
 set -u
 fail() { echo "gpu_carry_scene.sh: error: $*" >&2; exit 2; }
 [ $# -ge 2 ] && [ $# -le 3 ] || fail "usage: gpu_carry_scene.sh SCENE_DIR OUT_PREFIX [PART_MB]"
@@ -18,6 +19,8 @@ MB=${3:-14}
 [[ "$MB" =~ ^[1-9][0-9]*$ ]] || fail "PART_MB $MB is not a whole number of MiB >= 1"
 ! compgen -G "$2.p[0-9]*" > /dev/null \
     || fail "$2.p* exists: remove the old parts or give a new prefix (nothing written)"
+mkdir -p "$(dirname "$2")" 2>/dev/null && [ -w "$(dirname "$2")" ] \
+    || fail "$(dirname "$2") cannot be made or written (nothing written)"
 SRC=$(cd "$(dirname "$1")" && pwd); NAME=$(basename "$1"); OUT=$2
 TMP=$(mktemp -d) || fail "no temporary folder"
 trap 'rm -rf "$TMP"' EXIT
@@ -27,7 +30,7 @@ parts=("$TMP"/part.*)
 n=${#parts[@]}
 for k in "${!parts[@]}"; do
     d="$OUT.p$k"
-    mkdir -p "$d" || fail "$d cannot be made"
+    mkdir -p "$d" 2>/dev/null || fail "$d cannot be made"
     mv "${parts[$k]}" "$d/"
     last=$([ "$k" -eq $((n - 1)) ] && echo 1 || echo 0)
     cat > "$d/stage.sh" <<SH

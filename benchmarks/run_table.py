@@ -130,8 +130,11 @@ def run(args: argparse.Namespace) -> int:
     if args.out is None:
         print(text, end="")
         return 0
-    with atomic_path(args.out) as tmp:
-        tmp.write_text(text)
+    try:
+        with atomic_path(args.out) as tmp:
+            tmp.write_text(text)
+    except OSError as e:
+        raise InputError(f"{args.out}: cannot be written ({e.strerror or e})") from None
     print(args.out)
     return 0
 

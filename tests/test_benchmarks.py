@@ -659,6 +659,7 @@ def test_gpu_carry_scene_cuts_a_scene_into_carries_the_last_joins(tmp_path):
         ([tmp_path / "none", tmp_path / "x"], "is not a folder"),
         ([scene, tmp_path / "y", "0"], "PART_MB"),
         ([scene, tmp_path / "c" / "big"], "exists"),
+        ([scene, scene / "events.npz" / "big"], "cannot be made"),
     ):
         r = run(script, *args)
         err = r.stderr.strip()
@@ -715,6 +716,7 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
         ([str(out / "ref2"), "--out", str(tmp_path / "t.txt")], ".md file"),
         ([str(tmp_path / "nothing")], "no error_vs_time.json here"),
         ([str(out / "ref2"), "--at", "0"], "--at"),
+        ([str(out / "ref2"), "--out", str(table / "under-a-file.md")], "cannot be written"),
     ):
         assert run_table.main(bad) == 2
         err = capsys.readouterr().err.strip().splitlines()

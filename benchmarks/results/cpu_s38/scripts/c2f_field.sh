@@ -6,6 +6,7 @@
 set -u
 [ $# -eq 2 ] && [ -d "$1" ] || { echo "c2f_field.sh: error: usage: c2f_field.sh DATA OUT" >&2; exit 2; }
 [ ! -e "$2" ] || { echo "c2f_field.sh: error: $2 exists (nothing written)" >&2; exit 2; }
+mkdir -p "$2" 2>/dev/null || { echo "c2f_field.sh: error: $2 cannot be made" >&2; exit 2; }
 BASE="refine_poses=true smooth_poses=121 smooth_order=1"
 C2F="refine_c2f_mode=field refine_c2f_start=0.0 refine_c2f_end=0.2"
 for scene in shiny173 lattice173; do

@@ -84,7 +84,7 @@ def main(argv: list[str]) -> int:
             metrics = json.loads((ev / "metrics.json").read_text())
             res.setdefault(mode, {})["psnr"] = metrics.get("psnr")
             print(mode, "psnr", metrics.get("psnr"), flush=True)
-    except InputError as e:
+    except (InputError, OSError) as e:
         print(f"frozen_field.py: error: {e}", file=sys.stderr)
         return 2
     (out / "frozen_field.json").write_text(json.dumps(res, indent=1))

@@ -6,6 +6,7 @@
 set -u
 [ $# -eq 2 ] && [ -d "$1" ] || { echo "hold.sh: error: usage: hold.sh DATA OUT" >&2; exit 2; }
 [ ! -e "$2" ] || { echo "hold.sh: error: $2 exists (nothing written)" >&2; exit 2; }
+mkdir -p "$2" 2>/dev/null || { echo "hold.sh: error: $2 cannot be made" >&2; exit 2; }
 BASE="refine_poses=true smooth_poses=121 smooth_order=1"
 for scene in shiny173 lattice173; do
   for v in default hold; do

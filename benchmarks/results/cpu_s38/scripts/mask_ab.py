@@ -53,10 +53,12 @@ def main(argv: list[str]) -> int:
             d = out / f"{name}_{r}"
             args = ["--scene", argv[0], "--device", DEVICE, "--warmup", WARMUP, "--steps", "20"]
             try:
-                P.main([*args, "--variant", variant, "--out", str(d)])
-            except InputError as e:
+                rc = P.main([*args, "--variant", variant, "--out", str(d)])
+            except (InputError, OSError) as e:
                 print(f"mask_ab.py: error: {e}", file=sys.stderr)
                 return 2
+            if rc != 0:
+                return rc  # profile_step said what was wrong, in one line
             res = json.loads((d / "profile_step.json").read_text())
             rows.append(
                 {
