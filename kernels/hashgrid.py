@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import warp as wp
 
-from .common import device_of, fast_view, init, launch
+from .common import as_float32, device_of, fast_view, init, launch
 from .gridconfig import HashGridConfig
 from .rows import tracker_of
 from .vector_memory import gather_pair, scatter_func, scatter_pair
@@ -321,15 +321,9 @@ def _tracked_backward(F: int):
 
 
 @functools.cache
-def _no_rows(device: str) -> wp.array:
-    """The mask argument of an unmasked backward(x) (one byte, never read)."""
-    return wp.zeros(1, dtype=wp.uint8, device=device)
-
-
-@functools.cache
-def _no_weights(device: str) -> wp.array:
-    """The weights argument of an unweighted backward(x) (one float, never read)."""
-    return wp.zeros(1, dtype=float, device=device)
+def _unused(dtype, device: str) -> wp.array:
+    """A one-element array for an optional kernel argument switched off (never read)."""
+    return wp.zeros(1, dtype=dtype, device=device)
 
 
 @functools.cache
@@ -482,8 +476,8 @@ class _HashGridEncode(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             grad_x = torch.empty_like(x)
             w, mask = ctx.x_grad_weights, ctx.x_grad_mask
-            weights = _no_weights(dev) if w is None else fast_view(w)
-            rows = _no_rows(dev) if mask is None else fast_view(mask.view(torch.uint8))
+            weights = _unused(float, dev) if w is None else fast_view(w)
+            rows = _unused(wp.uint8, dev) if mask is None else fast_view(mask.view(torch.uint8))
             if n:
                 launch(
                     bwd_x,
@@ -553,6 +547,5 @@ def hash_grid_encode(
             f"{tuple(x_grad_mask.shape)} {x_grad_mask.dtype} on {x_grad_mask.device}"
         )
     mask = None if x_grad_mask is None else x_grad_mask.contiguous()
-    w = x_grad_weights
-    w = None if w is None else w.to(x.device, torch.float32, copy=False).contiguous()
+    w = None if x_grad_weights is None else as_float32(x_grad_weights, x.device)
     return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, w, mask)
