@@ -11,6 +11,7 @@ import json
 import math
 import os
 import subprocess
+import zipfile
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -666,6 +667,64 @@ def test_gpu_carry_scene_cuts_a_scene_into_carries_the_last_joins(tmp_path):
         assert r.returncode == 2 and len(err.splitlines()) == 1 and words in err, (args, err)
     assert not any((tmp_path / n).exists() for n in ("x.p0", "y.p0"))
     assert before == {p: sorted(x.name for x in p.iterdir()) for p in parts}
+
+
+def test_gpu_stage_parts_pieces_rejoin_to_the_same_warp_so(tmp_path):
+    """gpu_stage_parts.sh: the cached xz stream cut into PART_MB carries whose stage.sh scripts
+    and the last one's activate.sh rebuild warp.so byte for byte (and the later calls'
+    activate.sh); activating with a piece missing is refused; bad input is one line and exit
+    code 2 with the old pieces left alone."""
+    script = Path(__file__).parents[1] / "benchmarks" / "gpu_stage_parts.sh"
+    cache = tmp_path / "cache" / "gpu-warp-1.19.0"
+    cache.mkdir(parents=True)
+    so = np.random.default_rng(1).bytes(int(3.5 * 2**20))
+    xz = subprocess.run(["xz", "-0", "-c"], input=so, capture_output=True, check=True).stdout
+    (cache / "warp.so.xz.part00").write_bytes(xz[: len(xz) // 2])
+    (cache / "warp.so.xz.part01").write_bytes(xz[len(xz) // 2 :])
+    with zipfile.ZipFile(cache / "warp_rest.zip", "w") as z:
+        z.writestr("warp/__init__.py", "")
+    work, machine = tmp_path / "work", tmp_path / "machine"
+    work.mkdir()
+    env = {
+        **os.environ,
+        "XDG_CACHE_HOME": str(tmp_path / "cache"),
+        "PART_MB": "2",
+        "GPU_WARP_DIR": str(machine / "gw"),
+        "GPU_WARP_SITE": str(machine / "site"),
+    }
+
+    def run(cmd, **extra):
+        return subprocess.run(
+            ["bash", "-c", cmd], capture_output=True, text=True, cwd=work, env={**env, **extra}
+        )
+
+    r = run(f"bash {script}")
+    assert r.returncode == 2 and "no staged Warp" in r.stderr  # no done mark yet
+    (cache / "done").touch()
+    assert run(f"bash {script}").returncode == 0
+    n = math.ceil(len(xz) / 2**20)  # PART_MB - 1 MiB of the stream a piece
+    pieces = sorted(p.name for p in work.iterdir())
+    assert n >= 3 and pieces == [f".gpu-wp-{i:02d}" for i in range(n)]
+    assert all((work / p / "stage.sh").exists() for p in pieces)
+    activate = f". {pieces[-1]}/activate.sh && echo $PYTHONPATH"
+    r = run(" && ".join(f"bash {p}/stage.sh" for p in pieces[:-2]) + f" && {activate}")
+    assert r.returncode == 1 and "pieces missing" in r.stderr
+    r = run(f"bash {pieces[-2]}/stage.sh && {activate}")
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1].split(":")[0] == str(machine / "site")
+    assert (machine / "site" / "warp" / "bin" / "warp.so").read_bytes() == so
+    assert (machine / "site" / "warp" / "__init__.py").exists()
+    later = run(f". {machine / 'gw' / 'activate.sh'} && echo $PYTHONPATH")
+    assert later.stdout.strip().split(":")[0] == str(machine / "site")
+    before = sorted(str(p.relative_to(work)) for p in work.rglob("*"))
+    for extra, words in (
+        ({"PART_MB": "1"}, "PART_MB"),
+        ({"XDG_CACHE_HOME": str(work)}, "no staged"),
+    ):
+        r = run(f"bash {script}", **extra)
+        err = r.stderr.strip()
+        assert r.returncode == 2 and len(err.splitlines()) == 1 and words in err, err
+    assert before == sorted(str(p.relative_to(work)) for p in work.rglob("*"))
 
 
 def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
