@@ -13,6 +13,8 @@ LABEL=DIR. Without a label a row is named by the folder's last two parts, SCENE/
 - ms/step: training seconds over steps (warm-up and evaluations excluded);
 - trained / marched: samples per step at the last evaluation, millions (marched only where
   compaction ran and the run records it);
+- slots: the slots (padding included) of the fixed-capacity buffer the field trained on at
+  the last evaluation, millions (runs that record it);
 - compacting: the share of the last evaluation interval's steps that compacted;
 - error left: rotation error the poses still have (°, perturbed runs);
 - settled: the budget fraction at which the windows lengthened (`refine_settle_px`), from
@@ -89,6 +91,8 @@ def row(label: str, run: dict, at: list[float], base: dict | None) -> list[str]:
     trained, marched = last.get("samples_per_step"), last.get("marched_per_step")
     cells.append(_num(None if trained is None else trained / 1e6, ".2f"))
     cells.append(_num(None if marched is None else marched / 1e6, ".2f"))
+    slots = last.get("trained_slots")
+    cells.append(_num(None if slots is None else slots / 1e6, ".2f"))
     cells.append(_num(last.get("compacted_share"), ".2f"))
     err = last.get("pose_error_deg")
     cells.append(DASH if err is None else f"{err:.3f}°")
@@ -101,7 +105,7 @@ def table(items: list[str], at: list[float], base: str | None = None) -> str:
     parsed = [parse_item(i) for i in items]
     runs = [load_run(folder) for _, folder in parsed]
     by_label = dict(zip((label for label, _ in parsed), runs, strict=True))
-    head = ["run", *[f"{t:g} s" for t in at], "Δ", "ms/step", "trained M", "marched M"]
+    head = ["run", *[f"{t:g} s" for t in at], "Δ", "ms/step", "trained M", "marched M", "slots M"]
     head += ["compacting", "error left", "settled"]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     for (label, _), run in zip(parsed, runs, strict=True):

@@ -88,7 +88,9 @@ class ScheduledEval(Hook):
     A point: target_s, train_s, step, psnr, ssim, psnr_uncorrected, eval_s, the means
     since the previous point of loss, samples_per_step (the samples the field ran on),
     marched_per_step and step_ms, compacted_share (the share of those steps that ran on
-    compacted samples: `MarcherOptions.early_stop_eps`), and the learnt
+    compacted samples: `MarcherOptions.early_stop_eps`), trained_slots (the slots, padding
+    included, of the fixed-capacity buffer the field trains on now; None where buffers are
+    exactly sized), and the learnt
     calibration's latest stats (CALIBRATION_KEYS, where the run learns it): how the poses
     and thresholds move over a run, not only where they end.
     """
@@ -153,6 +155,7 @@ class ScheduledEval(Hook):
             "samples_per_step": sum(samples) / max(len(samples), 1),
             "marched_per_step": n_rays * sum(marched) / max(len(marched), 1),
             "compacted_share": compacted / max(len(self.acc), 1),
+            "trained_slots": _trained_slots(trainer),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
             **_latest(self.acc, CALIBRATION_KEYS),
         }
@@ -180,6 +183,12 @@ CALIBRATION_KEYS = (
     "threshold_neg",
     "threshold_ratio",
 )
+
+
+def _trained_slots(trainer: Trainer) -> int | None:
+    """The field's fixed training buffer's slots now (a host int, no device read), or None."""
+    slots = getattr(getattr(trainer.field, "sampler", None), "trained_slots", None)
+    return None if slots is None else slots()
 
 
 def _latest(acc: list[dict], keys: tuple[str, ...]) -> dict[str, float]:

@@ -119,7 +119,7 @@ class OccupancySampler:
     def use_fixed_capacity(self, on: bool) -> None:
         """March (and compact) training batches into fixed-capacity buffers (no host sync;
         `capacity.py`) or into exactly sized ones (the host reads the counts)."""
-        self.sample_capacity = SampleCapacity() if on else None
+        self.sample_capacity = self._capacity() if on else None
         self.pruned_capacity = self._new_pruned_capacity()
         self._capacity_cone = None
 
@@ -149,9 +149,22 @@ class OccupancySampler:
         return fixed
 
     # -- compaction ----------------------------------------------------------------------
+    def _capacity(self) -> SampleCapacity:
+        opt = self.options.marcher
+        return SampleCapacity(
+            headroom=opt.capacity_headroom, shrink_below=opt.capacity_shrink_below
+        )
+
     def _new_pruned_capacity(self) -> SampleCapacity | None:
         """The compacted samples' buffer: with fixed capacity, while compacting."""
-        return SampleCapacity() if self.sample_capacity is not None and self.prunes() else None
+        on = self.sample_capacity is not None and self.prunes()
+        return self._capacity() if on else None
+
+    def trained_slots(self) -> int | None:
+        """Slots of the buffer the field trains on (padding included): the compacted buffer's
+        while compacting, else the marched one's; None while buffers are exactly sized."""
+        cap = self.pruned_capacity if self.prunes() else self.sample_capacity
+        return None if cap is None else cap.capacity
 
     def _compaction_set(self) -> bool:
         opt = self.options.marcher
