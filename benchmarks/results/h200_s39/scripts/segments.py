@@ -1,0 +1,41 @@
+"""ms per step between a run's curve points (training clock), and the compaction share at each:
+where in a 60 s run the step time goes.
+
+    python benchmarks/results/h200_s39/scripts/segments.py RUN_DIR [RUN_DIR ...]
+
+RUN_DIR: an error_vs_time run folder (its error_vs_time.json). Prints one line per run.
+"""
+
+import json
+import sys
+from pathlib import Path
+
+EDGES = (1, 5, 12, 30, 60)  # segment edges, curve target seconds
+
+
+def main(argv: list[str]) -> int:
+    if not argv:
+        print("segments.py: error: usage: segments.py RUN_DIR [RUN_DIR ...]", file=sys.stderr)
+        return 2
+    print("| run | " + " | ".join(f"{a}-{b} s" for a, b in zip(EDGES, EDGES[1:])) + " | on at |")
+    print("|---|" + "---:|" * len(EDGES))
+    for run in argv:
+        f = Path(run) / "error_vs_time.json"
+        try:
+            pts = json.loads(f.read_text())["points"]
+        except (OSError, ValueError, KeyError) as e:
+            print(f"segments.py: error: {f}: {e}", file=sys.stderr)
+            return 2
+        by = {round(p["target_s"]): p for p in pts}
+        ms = [
+            1000 * (by[b]["train_s"] - by[a]["train_s"]) / (by[b]["step"] - by[a]["step"])
+            for a, b in zip(EDGES, EDGES[1:])
+        ]
+        on = next((t for t in sorted(by) if by[t].get("compacted_share", 0) >= 0.5), None)
+        name = "/".join(Path(run).parts[-2:])
+        print(f"| {name} | " + " | ".join(f"{m:.2f}" for m in ms) + f" | {on} s |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
