@@ -733,6 +733,9 @@ def test_ngp_capacity_options_size_the_buffers_and_trained_slots_names_them(make
             assert (cap.headroom, cap.shrink_below) == (2.0, 0.3)
             assert cap.size_for(10**6) == 62 * 2**15  # 2e6 slots, rounded up to the quantum
         assert s.trained_slots() == caps[-1].capacity >= int(out["n_samples"]) > 0
+        for i, cap in enumerate(caps):  # tell the two buffers apart
+            cap.capacity = (3 + i) * cap.quantum
+        assert s.trained_slots() == (4 if compact else 3) * 2**15
     with pytest.raises(InputError, match="capacity_shrink_below") as e:
         parse_options("ngp", {"capacity_headroom": 1.5, "capacity_shrink_below": 0.7})
     assert len(str(e.value).splitlines()) == 1

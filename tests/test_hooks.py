@@ -117,16 +117,19 @@ def test_scheduled_eval_points_carry_the_learnt_calibration(scene, tmp_path):
 
 @pytest.mark.skipif(not HAVE_NGP, reason="ngp backend not built")
 def test_scheduled_eval_points_say_how_many_steps_compacted(scene, tmp_path):
-    """Each point: the samples marched beside those the field ran on, and the share of its
-    steps that compacted (the GPU switches compaction on and off as it pays)."""
+    """Each point: the samples marched beside those the field ran on, the share of its
+    steps that compacted (the GPU switches compaction on and off as it pays), and the slots
+    of the fixed-capacity buffer the field trains on (the device step's; None when the
+    plain step sizes buffers exactly)."""
     from fastenerf.evaluate import make_eval_set
 
     ev = make_eval_set(scene, 1, 0.25)
-    for eps in (1e-4, 0.0):
+    for eps, mode in ((1e-4, "plain"), (0.0, "plain"), (1e-4, "device"), (0.0, "device")):
         points = []
         opts = {**NGP_TINY, "early_stop_eps": eps, "density_bias": 3.0}  # opaque: rays stop
-        cfg = tiny_cfg("ngp", steps=1000, backend_options=opts)
-        trainer = Trainer(scene, cfg, tmp_path / f"run{eps}")
+        cfg = tiny_cfg("ngp", steps=1000, backend_options=opts, step_mode=mode)
+        trainer = Trainer(scene, cfg, tmp_path / f"run{eps}{mode}")
+        assert trainer.step_mode == mode
         trainer.run([ScheduledEval(ev, [1e-9, 2e-9], points.append)])
         assert points
         for p in points:
@@ -136,6 +139,12 @@ def test_scheduled_eval_points_say_how_many_steps_compacted(scene, tmp_path):
             else:
                 assert p["compacted_share"] == 0.0
                 assert p["marched_per_step"] == pytest.approx(p["samples_per_step"])
+            sampler = trainer.field.sampler
+            if mode == "plain":
+                assert p["trained_slots"] is None
+            else:  # the compacted buffer while compacting, else the marched one
+                cap = sampler.pruned_capacity if eps else sampler.sample_capacity
+                assert p["trained_slots"] == cap.capacity >= p["samples_per_step"] > 0
 
 
 class _ClockJump(Hook):

@@ -162,7 +162,8 @@ class OccupancySampler:
 
     def trained_slots(self) -> int | None:
         """Slots of the buffer the field trains on (padding included): the compacted buffer's
-        while compacting, else the marched one's; None while buffers are exactly sized."""
+        while compacting, else the marched one's; None while buffers are exactly sized (the
+        plain step) or the buffer is still to be sized at the next batch."""
         cap = self.pruned_capacity if self.prunes() else self.sample_capacity
         return None if cap is None else cap.capacity
 

@@ -8,6 +8,7 @@ RUN_DIR: an error_vs_time run folder (its error_vs_time.json). Prints one line p
 
 import json
 import sys
+from itertools import pairwise
 from pathlib import Path
 
 EDGES = (1, 5, 12, 30, 60)  # segment edges, curve target seconds
@@ -17,7 +18,7 @@ def main(argv: list[str]) -> int:
     if not argv:
         print("segments.py: error: usage: segments.py RUN_DIR [RUN_DIR ...]", file=sys.stderr)
         return 2
-    print("| run | " + " | ".join(f"{a}-{b} s" for a, b in zip(EDGES, EDGES[1:])) + " | on at |")
+    print("| run | " + " | ".join(f"{a}-{b} s" for a, b in pairwise(EDGES)) + " | on at |")
     print("|---|" + "---:|" * len(EDGES))
     for run in argv:
         f = Path(run) / "error_vs_time.json"
@@ -29,7 +30,7 @@ def main(argv: list[str]) -> int:
         by = {round(p["target_s"]): p for p in pts}
         ms = [
             1000 * (by[b]["train_s"] - by[a]["train_s"]) / (by[b]["step"] - by[a]["step"])
-            for a, b in zip(EDGES, EDGES[1:])
+            for a, b in pairwise(EDGES)
         ]
         on = next((t for t in sorted(by) if by[t].get("compacted_share", 0) >= 0.5), None)
         name = "/".join(Path(run).parts[-2:])
