@@ -184,6 +184,9 @@ class TrainConfig:
     refine_knots: int = field(default=0, metadata={"min": 0, "max": 1 << 20})
     """Learn the corrections at this many knots spread along the pose grid, each grid pose's
     interpolated between its two (0: one per grid pose): for an error smooth along the path."""
+    refine_knot_rows: bool = False
+    """With refine_knots: each grid pose also learns its own correction, added to the knots'
+    (the knots pool the gradient of an error smooth along the path, the rows take the rest)."""
     refine_decay: float | None = field(default=None, metadata={"min": 0.0, "max": 1e4})
     """Decoupled decay towards the given poses: a row a batch sees shrinks by pose lr x this.
     Default: 0 with smooth_poses, else 30 (`refine_defaults`)."""
@@ -257,6 +260,8 @@ class TrainConfig:
         k, shared = self.refine_knots, self.refine_shared or self.refine_shared_until > 0
         ok = k == 0 or (k >= 2 and not shared)
         _check(ok, where, "refine_knots", f"must be 0 or >= 2 and without refine_shared, got {k}")
+        ok = not self.refine_knot_rows or k >= 2
+        _check(ok, where, "refine_knot_rows", "needs refine_knots (it adds rows to the knots)")
         _check(0 <= w <= 1e6, where, "threshold_pixel_weight", f"must be in [0, 1e6], got {w}")
 
     def refine_defaults(self) -> tuple[int, float]:

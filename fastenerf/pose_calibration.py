@@ -118,6 +118,7 @@ class PoseCalibration:
             translation=cfg.refine_translation,
             shared=cfg.refine_shared,
             knots=cfg.refine_knots,
+            knot_rows=cfg.refine_knot_rows,
         )
         betas = (cfg.refine_beta1, ADAM_BETAS[1])
         group = {"params": [self.refiner.delta], "lr": cfg.refine_lr, "name": "poses"}
@@ -252,6 +253,7 @@ class PoseCalibration:
             "rows": 1 if self.refiner.shared else int(self.refiner.used.sum()),
             "shared": self.refiner.shared,
             "knots": self.cfg.refine_knots,
+            "knot_rows": self.cfg.refine_knot_rows,
             "gate": self.gate,
             "gauge": self.refiner.gauge,
             "corrections": "world-frame [rotation vector (rad), shift (world units)]",

@@ -90,7 +90,9 @@ class PoseRefiner(nn.Module):
     learnt rows interpolated along the grid (module docstring; 0: one per row); loop: whether
     the grid's last row is its first's twin (None: an unused last row equal to the first).
     Parameter `delta`: (G, 6) camera-frame [ω (rad), u (world units)] before the gauge fix;
-    (1, 6) when shared, (K, 6) with knots.
+    (1, 6) when shared, (K, 6) with knots, (G + K, 6) with knots and knot_rows (each grid
+    row's own correction on top of the knots': the knots pool a smooth error's gradient along
+    the path, the rows take what is each view's own).
     """
 
     def __init__(
@@ -104,6 +106,7 @@ class PoseRefiner(nn.Module):
         shared: bool = False,
         knots: int = 0,
         loop: bool | None = None,
+        knot_rows: bool = False,
     ):
         super().__init__()
         self.fused, self.shared = fused, shared
@@ -115,6 +118,8 @@ class PoseRefiner(nn.Module):
             raise ValueError("PoseRefiner: no grid row is used")
         if shared and knots:
             raise ValueError("PoseRefiner: a shared correction has no knots")
+        if knot_rows and not knots:
+            raise ValueError("PoseRefiner: knot_rows adds rows to knots: give knots")
         self.gauge = gauge
         self.register_buffer("base", grid_c2w.detach().float().clone())
         mask = used.to(self.base.device, torch.float32)
@@ -132,11 +137,17 @@ class PoseRefiner(nn.Module):
         B = knot_matrix(len(grid_c2w), knots, loop).to(mask.device) if knots else None
         self.register_buffer("interp", B)
         rows = 1 if shared else knots or len(grid_c2w)
+        self.knot_rows = bool(knot_rows)
+        rows += len(grid_c2w) if knot_rows else 0  # the grid's own rows first, then the knots
         self.delta = nn.Parameter(torch.zeros(rows, 6, device=self.base.device))
 
     def row_delta(self) -> torch.Tensor:
         """Every grid row's camera-frame correction before the gauge fix, (G, 6): `delta`
-        itself, the shared row broadcast, or the knots interpolated."""
+        itself, the shared row broadcast, the knots interpolated, or (knot_rows) each row's
+        own plus the knots interpolated."""
+        if self.knot_rows:
+            G = len(self.base)
+            return self.delta[:G] + self.interp @ self.delta[G:]
         if self.interp is not None:
             return self.interp @ self.delta
         return self.delta.expand(len(self.base), 6)
@@ -230,7 +241,8 @@ class PoseRefiner(nn.Module):
         """The grid rows seen (G,) as rows of `delta`: shared, (1,) whether any was; with
         knots, (K,) the knots a seen row takes a weight from (on the device, no host read)."""
         if self.interp is not None:
-            return (seen.to(self.interp.dtype) @ self.interp) > 0
+            knots = (seen.to(self.interp.dtype) @ self.interp) > 0
+            return torch.cat([seen, knots]) if self.knot_rows else knots
         return seen.any(0, keepdim=True) if self.shared else seen
 
     @torch.no_grad()

@@ -482,6 +482,45 @@ def test_knots_give_the_rays_and_gradients_of_their_interpolated_rows(fused):
     assert torch.equal(knotted.row_delta()[-1], knotted.row_delta()[0])  # the loop's twin
 
 
+@pytest.mark.parametrize("fused", [True, False])
+def test_knot_rows_add_each_rows_own_correction_to_the_knots(fused):
+    """knot_rows: the grid's rows and then the knots in one (G + K, 6) parameter; the rays are
+    those of rows B · knots + own; the rows' part of the gradient is the per-row refiner's and
+    the knots' Bᵀ times it; a batch steps the rows it sees and their knots."""
+    from fastenerf.pose_refine import PoseRefiner, knot_matrix
+
+    G, K = 21, 5
+    c2w = _grid_poses(G - 1).float()
+    used = torch.ones(G, dtype=torch.bool)
+    used[-1] = False
+    gen = torch.Generator().manual_seed(4)
+    both = PoseRefiner(c2w, used, "none", knots=K, knot_rows=True)
+    rows = PoseRefiner(c2w, used, "none")
+    B = knot_matrix(G, K, loop=True)
+    assert both.delta.shape == (G + K, 6) and not both.delta.detach().any()
+    with torch.no_grad():
+        both.delta.copy_(0.02 * torch.randn(G + K, 6, generator=gen))
+        rows.delta.copy_(both.delta[:G] + B @ both.delta[G:])
+    dirs = torch.nn.functional.normalize(torch.randn(6, 3, generator=gen), dim=-1)
+    idx = torch.tensor([2] * 3 + [3] * 3 + [3] * 3 + [4] * 3)
+    out = []
+    for pr in (both, rows):
+        o, d, seen = pr.rays_and_rows(dirs, idx, fused=fused)
+        (o.sum() + (d * torch.arange(3.0)).sum()).backward()
+        out.append((o.detach(), d.detach(), seen, pr.delta.grad))
+    torch.testing.assert_close(out[0][0], out[1][0])
+    torch.testing.assert_close(out[0][1], out[1][1])
+    torch.testing.assert_close(out[0][3][:G], out[1][3], rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(out[0][3][G:], B.T @ out[1][3], rtol=1e-5, atol=1e-7)
+    assert out[0][2].shape == (G + K,)
+    assert out[0][2][:G].tolist() == [i in (2, 3, 4) for i in range(G)]
+    assert out[0][2][G:].tolist() == [True, True, False, False, False]
+    with pytest.raises(ValueError, match="knot_rows"):
+        PoseRefiner(c2w, used, "none", knot_rows=True)
+    with pytest.raises(InputError, match="refine_knot_rows"):
+        TrainConfig(refine_poses=True, refine_knot_rows=True).validate("train")
+
+
 def test_knots_are_checked_against_the_grid_and_the_shared_row(scene_config):
     from fastenerf.pose_calibration import check_knots
 

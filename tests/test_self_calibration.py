@@ -702,6 +702,28 @@ def test_both_options_recorded_checkpointed_and_resumed_exactly(scene, tmp_path)
     assert "threshold_ratio" in progress["self_calibration"]
 
 
+def test_knot_rows_run_recorded_checkpointed_and_resumed_exactly(scene, tmp_path):
+    """refine_knots with refine_knot_rows trains both parts (rows and knots learn), resumes
+    bit for bit (the row Adam's per-row state over G + K rows included) and is recorded."""
+    cfg = dict(
+        refine_poses=True,
+        refine_knots=4,
+        refine_knot_rows=True,
+        perturb=PerturbConfig(pose_error_deg=1.0),
+        refine_gate=0.5,
+    )
+    whole, resumed = whole_and_resumed(scene, cfg, tmp_path)
+    delta = whole.selfcal.poses.delta
+    G = len(whole.selfcal.poses.base)
+    assert delta.shape == (G + 4, 6) and torch.equal(delta, resumed.selfcal.poses.delta)
+    assert delta[:G].abs().max() > 0 and delta[G:].abs().max() > 0  # both parts learnt
+    a, r = field_state(whole), field_state(resumed)
+    assert all(torch.equal(a[k], r[k]) for k in a)
+    conf = json.loads((tmp_path / "whole" / "config.json").read_text())
+    assert conf["self_calibration"]["poses"]["knots"] == 4
+    assert conf["self_calibration"]["poses"]["knot_rows"] is True
+
+
 def test_a_run_resumed_in_the_shared_phase_forgets_the_moments_at_the_switch(scene, tmp_path):
     """A checkpoint taken while the poses share one correction, resumed where each takes its
     own (4 steps, the switch at the third): the resumed run zeroes the moments at the switch
