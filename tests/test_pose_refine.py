@@ -451,6 +451,22 @@ def test_knot_matrix_interpolates_linearly_between_neighbouring_knots(loop):
         knot_matrix(rows, rows + 1 - int(loop), loop)
 
 
+def _same_rays_and_grads(refiner, rows, gen, fused):
+    """Rays of windows 2→3 and 3→4 through `refiner` and the per-row `rows` holding the same
+    corrections: asserts they are the same rays; returns each one's (rays_o, rays_d, rows
+    seen, gradient of delta) for one scalar of both."""
+    dirs = torch.nn.functional.normalize(torch.randn(6, 3, generator=gen), dim=-1)
+    idx = torch.tensor([2] * 3 + [3] * 3 + [3] * 3 + [4] * 3)
+    out = []
+    for pr in (refiner, rows):
+        o, d, seen = pr.rays_and_rows(dirs, idx, fused=fused)
+        (o.sum() + (d * torch.arange(3.0)).sum()).backward()
+        out.append((o.detach(), d.detach(), seen, pr.delta.grad))
+    torch.testing.assert_close(out[0][0], out[1][0])
+    torch.testing.assert_close(out[0][1], out[1][1])
+    return out
+
+
 @pytest.mark.parametrize("fused", [True, False])
 def test_knots_give_the_rays_and_gradients_of_their_interpolated_rows(fused):
     """A refiner with knots is the per-row refiner whose rows are B · knots: same rays, the
@@ -468,15 +484,7 @@ def test_knots_give_the_rays_and_gradients_of_their_interpolated_rows(fused):
     with torch.no_grad():
         knotted.delta.copy_(0.02 * torch.randn(K, 6, generator=gen))
         rows.delta.copy_(B @ knotted.delta)
-    dirs = torch.nn.functional.normalize(torch.randn(6, 3, generator=gen), dim=-1)
-    idx = torch.tensor([2] * 3 + [3] * 3 + [3] * 3 + [4] * 3)  # windows 2→3 and 3→4
-    out = []
-    for pr in (knotted, rows):
-        o, d, seen = pr.rays_and_rows(dirs, idx, fused=fused)
-        (o.sum() + (d * torch.arange(3.0)).sum()).backward()
-        out.append((o.detach(), d.detach(), seen, pr.delta.grad))
-    torch.testing.assert_close(out[0][0], out[1][0])
-    torch.testing.assert_close(out[0][1], out[1][1])
+    out = _same_rays_and_grads(knotted, rows, gen, fused)
     torch.testing.assert_close(out[0][3], B.T @ out[1][3], rtol=1e-5, atol=1e-7)
     assert out[0][2].shape == (K,) and out[0][2].tolist() == [True, True, False, False, False]
     assert torch.equal(knotted.row_delta()[-1], knotted.row_delta()[0])  # the loop's twin
@@ -501,15 +509,7 @@ def test_knot_rows_add_each_rows_own_correction_to_the_knots(fused):
     with torch.no_grad():
         both.delta.copy_(0.02 * torch.randn(G + K, 6, generator=gen))
         rows.delta.copy_(both.delta[:G] + B @ both.delta[G:])
-    dirs = torch.nn.functional.normalize(torch.randn(6, 3, generator=gen), dim=-1)
-    idx = torch.tensor([2] * 3 + [3] * 3 + [3] * 3 + [4] * 3)
-    out = []
-    for pr in (both, rows):
-        o, d, seen = pr.rays_and_rows(dirs, idx, fused=fused)
-        (o.sum() + (d * torch.arange(3.0)).sum()).backward()
-        out.append((o.detach(), d.detach(), seen, pr.delta.grad))
-    torch.testing.assert_close(out[0][0], out[1][0])
-    torch.testing.assert_close(out[0][1], out[1][1])
+    out = _same_rays_and_grads(both, rows, gen, fused)
     torch.testing.assert_close(out[0][3][:G], out[1][3], rtol=1e-5, atol=1e-7)
     torch.testing.assert_close(out[0][3][G:], B.T @ out[1][3], rtol=1e-5, atol=1e-7)
     assert out[0][2].shape == (G + K,)

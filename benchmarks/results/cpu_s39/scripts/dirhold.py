@@ -62,18 +62,37 @@ def hold_directions(tr: Trainer, until: int) -> None:
     tr.field._radiance = held
 
 
-def main(argv: list[str]) -> int:
+def parse_args(argv: list[str], prog: str) -> tuple[str, Path, int] | None:
+    """SCENE OUT [STEPS] (3000 unless given), or None after one usage line on stderr."""
     bad_n = len(argv) == 3 and not (argv[2].isdigit() and int(argv[2]) > 0)
     if len(argv) not in (2, 3) or not Path(argv[0]).is_dir() or Path(argv[1]).exists() or bad_n:
-        print("dirhold.py: error: usage: SCENE (a folder) OUT (new) [STEPS >= 1]", file=sys.stderr)
+        print(f"{prog}: error: usage: SCENE (a folder) OUT (new) [STEPS >= 1]", file=sys.stderr)
+        return None
+    return argv[0], Path(argv[1]), int(argv[2]) if len(argv) == 3 else 3000
+
+
+def score(out: Path, name: str) -> dict:
+    """Run OUT/NAME's rotation error at each logged step and its PSNR by `fastenerf eval`'s
+    rule (into OUT/eval_NAME); printed too."""
+    rows = [json.loads(x) for x in (out / name / "metrics.jsonl").read_text().splitlines()]
+    curve = [[r["step"], r.get("pose_error_deg")] for r in rows]
+    ev = out / f"eval_{name}"
+    cmd = ["fastenerf", "eval", str(out / name), "--out", str(ev), "--no-progress"]
+    subprocess.run(cmd, check=True, capture_output=True)
+    psnr = json.loads((ev / "metrics.json").read_text()).get("psnr")
+    print(name, psnr, curve[-1], flush=True)
+    return {"curve": curve, "psnr": psnr}
+
+
+def main(argv: list[str]) -> int:
+    if (args := parse_args(argv, "dirhold.py")) is None:
         return 2
+    scene_dir, out, steps = args
     try:
         runs = [(n, float(f), float(d)) for n, f, d in (r.split(":") for r in RUNS.split(","))]
     except ValueError:
         print(f"dirhold.py: error: RUNS {RUNS!r} is not NAME:FRAC:DEG,...", file=sys.stderr)
         return 2
-    scene_dir, out = argv[0], Path(argv[1])
-    steps = int(argv[2]) if len(argv) == 3 else 3000
     res = {}
     try:
         out.mkdir(parents=True)
@@ -82,17 +101,7 @@ def main(argv: list[str]) -> int:
             if frac > 0:
                 hold_directions(tr, int(frac * steps))
             tr.run(progress=False)
-            rows = [json.loads(x) for x in (out / name / "metrics.jsonl").read_text().splitlines()]
-            res[name] = {
-                "frac": frac,
-                "deg": deg,
-                "curve": [[r["step"], r.get("pose_error_deg")] for r in rows],
-            }
-            ev = out / f"eval_{name}"
-            cmd = ["fastenerf", "eval", str(out / name), "--out", str(ev), "--no-progress"]
-            subprocess.run(cmd, check=True, capture_output=True)
-            res[name]["psnr"] = json.loads((ev / "metrics.json").read_text()).get("psnr")
-            print(name, res[name]["psnr"], res[name]["curve"][-1], flush=True)
+            res[name] = {"frac": frac, "deg": deg, **score(out, name)}
             (out / "dirhold.json").write_text(json.dumps(res, indent=1))
     except (InputError, OSError, subprocess.CalledProcessError) as e:
         print(f"dirhold.py: error: {e}", file=sys.stderr)

@@ -13,7 +13,8 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
+
+from dirhold import parse_args, score  # this folder's (the script's own, first on sys.path)
 
 from fastenerf.config import train_preset
 from fastenerf.data.formats import load_scene_folder
@@ -34,20 +35,14 @@ def parse_runs(text: str) -> list[tuple[str, dict]]:
 
 
 def main(argv: list[str]) -> int:
-    bad_n = len(argv) == 3 and not (argv[2].isdigit() and int(argv[2]) > 0)
-    if len(argv) not in (2, 3) or not Path(argv[0]).is_dir() or Path(argv[1]).exists() or bad_n:
-        print(
-            "pose_variants.py: error: usage: SCENE (a folder) OUT (new) [STEPS >= 1]",
-            file=sys.stderr,
-        )
+    if (args := parse_args(argv, "pose_variants.py")) is None:
         return 2
+    scene_dir, out, steps = args
     try:
         runs, deg = parse_runs(RUNS), float(os.environ.get("DEG", "2"))
     except ValueError as e:
         print(f"pose_variants.py: error: RUNS {RUNS!r} or DEG: {e}", file=sys.stderr)
         return 2
-    scene_dir, out = argv[0], Path(argv[1])
-    steps = int(argv[2]) if len(argv) == 3 else 3000
     res = {}
     try:
         out.mkdir(parents=True)
@@ -64,16 +59,7 @@ def main(argv: list[str]) -> int:
             )
             cfg.perturb.pose_error_deg = deg
             Trainer(load_scene_folder(scene_dir), cfg.validate(), out / name).run(progress=False)
-            rows = [json.loads(x) for x in (out / name / "metrics.jsonl").read_text().splitlines()]
-            res[name] = {
-                "sets": sets,
-                "curve": [[r["step"], r.get("pose_error_deg")] for r in rows],
-            }
-            ev = out / f"eval_{name}"
-            cmd = ["fastenerf", "eval", str(out / name), "--out", str(ev), "--no-progress"]
-            subprocess.run(cmd, check=True, capture_output=True)
-            res[name]["psnr"] = json.loads((ev / "metrics.json").read_text()).get("psnr")
-            print(name, res[name]["psnr"], res[name]["curve"][-1], flush=True)
+            res[name] = {"sets": sets, **score(out, name)}
             (out / "pose_variants.json").write_text(json.dumps(res, indent=1))
     except (InputError, OSError, TypeError, subprocess.CalledProcessError) as e:
         print(f"pose_variants.py: error: {e}", file=sys.stderr)
