@@ -20,18 +20,18 @@ PART_MB=${PART_MB:-15}
 CACHE="${XDG_CACHE_HOME:-$HOME/.cache}/gpu-warp-${WARP_VERSION:-1.19.0}"
 [ -f "$CACHE/done" ] || fail "$CACHE has no staged Warp: run ../shared/gpu/stage-warp.sh first"
 [ -f "$CACHE/warp_rest.zip" ] || fail "$CACHE/warp_rest.zip missing: run ../shared/gpu/stage-warp.sh again"
-tmp=$(mktemp -d .gpu-wp-tmp.XXXX) || fail "cannot make a folder in $(pwd)"
+tmp=$(mktemp -d .gpu-wp-tmp.XXXX 2>/dev/null) || fail "cannot make a folder in $(pwd)"
 trap 'rm -rf "$tmp"' EXIT
+# every piece is made in $tmp first: the old pieces go only once the new ones are whole
 cat "$CACHE"/warp.so.xz.part* | split -b "$((PART_MB - 1))M" -d -a 2 - "$tmp/xz."
-rm -rf .gpu-wp-[0-9][0-9]
 pieces=("$tmp"/xz.*); last=$(( ${#pieces[@]} - 1 ))
 for i in "${!pieces[@]}"; do
-    d=$(printf '.gpu-wp-%02d' "$i"); mkdir "$d"; mv "${pieces[$i]}" "$d/"
+    d=$(printf "$tmp/.gpu-wp-%02d" "$i"); mkdir "$d"; mv "${pieces[$i]}" "$d/"
     cat > "$d/stage.sh" <<'SH'
 set -e; G=${GPU_WARP_DIR:-/var/tmp/gpu-warp}; mkdir -p "$G"; cp "$(dirname "$0")"/xz.* "$G/"; echo "$(basename "$(dirname "$0")") staged"
 SH
 done
-d=$(printf '.gpu-wp-%02d' "$last"); cp "$CACHE/warp_rest.zip" "$d/"
+d=$(printf "$tmp/.gpu-wp-%02d" "$last"); cp "$CACHE/warp_rest.zip" "$d/"
 cat > "$d/activate.sh" <<SH
 # source me on the lent machine after every earlier .gpu-wp-NN/stage.sh: joins the pieces once
 _gw_site=${GPU_WARP_SITE:-/tmp/gpu-warp-site}; _gw_dir=${GPU_WARP_DIR:-/var/tmp/gpu-warp}
@@ -50,4 +50,5 @@ fi
 export PYTHONPATH="\$_gw_site\${PYTHONPATH:+:\$PYTHONPATH}"
 export PYTHONUNBUFFERED=1
 SH
+rm -rf .gpu-wp-[0-9][0-9] && mv "$tmp"/.gpu-wp-[0-9][0-9] .
 du -sh .gpu-wp-[0-9][0-9] | tr '\n' ' '; echo

@@ -89,6 +89,7 @@ class PoseRefiner(nn.Module):
     shared: one row for every pose (module docstring; needs gauge "none"). knots: K >= 2
     learnt rows interpolated along the grid (module docstring; 0: one per row); loop: whether
     the grid's last row is its first's twin (None: an unused last row equal to the first).
+    knot_rows: with knots, each grid row also learns its own correction, added to the knots'.
     Parameter `delta`: (G, 6) camera-frame [ω (rad), u (world units)] before the gauge fix;
     (1, 6) when shared, (K, 6) with knots, (G + K, 6) with knots and knot_rows (each grid
     row's own correction on top of the knots': the knots pool a smooth error's gradient along
@@ -239,7 +240,8 @@ class PoseRefiner(nn.Module):
 
     def param_rows(self, seen: torch.Tensor) -> torch.Tensor:
         """The grid rows seen (G,) as rows of `delta`: shared, (1,) whether any was; with
-        knots, (K,) the knots a seen row takes a weight from (on the device, no host read)."""
+        knots, (K,) the knots a seen row takes a weight from; with knot_rows, (G + K,) the rows
+        seen and then those knots (on the device, no host read)."""
         if self.interp is not None:
             knots = (seen.to(self.interp.dtype) @ self.interp) > 0
             return torch.cat([seen, knots]) if self.knot_rows else knots

@@ -18,23 +18,25 @@ def main(argv: list[str]) -> int:
     if not argv:
         print("segments.py: error: usage: segments.py RUN_DIR [RUN_DIR ...]", file=sys.stderr)
         return 2
-    print("| run | " + " | ".join(f"{a}-{b} s" for a, b in pairwise(EDGES)) + " | on at |")
-    print("|---|" + "---:|" * len(EDGES))
-    for run in argv:
+    rows = []
+    for run in argv:  # every run read before anything is printed
         f = Path(run) / "error_vs_time.json"
         try:
-            pts = json.loads(f.read_text())["points"]
-        except (OSError, ValueError, KeyError) as e:
-            print(f"segments.py: error: {f}: {e}", file=sys.stderr)
+            by = {round(p["target_s"]): p for p in json.loads(f.read_text())["points"]}
+            ms = [
+                1000 * (by[b]["train_s"] - by[a]["train_s"]) / (by[b]["step"] - by[a]["step"])
+                for a, b in pairwise(EDGES)
+            ]
+        except (OSError, ValueError, KeyError, ZeroDivisionError) as e:
+            why = f"no point at {e} s" if isinstance(e, KeyError) else str(e)
+            print(f"segments.py: error: {f}: {why}", file=sys.stderr)
             return 2
-        by = {round(p["target_s"]): p for p in pts}
-        ms = [
-            1000 * (by[b]["train_s"] - by[a]["train_s"]) / (by[b]["step"] - by[a]["step"])
-            for a, b in pairwise(EDGES)
-        ]
         on = next((t for t in sorted(by) if by[t].get("compacted_share", 0) >= 0.5), None)
         name = "/".join(Path(run).parts[-2:])
-        print(f"| {name} | " + " | ".join(f"{m:.2f}" for m in ms) + f" | {on} s |")
+        rows.append(f"| {name} | " + " | ".join(f"{m:.2f}" for m in ms) + f" | {on} s |")
+    print("| run | " + " | ".join(f"{a}-{b} s" for a, b in pairwise(EDGES)) + " | on at |")
+    print("|---|" + "---:|" * len(EDGES))
+    print("\n".join(rows))
     return 0
 
 
