@@ -39,7 +39,7 @@ from benchmarks.curve import load_scene_dir, make_config
 from benchmarks.session import session_info, write_report
 from fastenerf.backends import BACKEND_NAMES
 from fastenerf.errors import InputError
-from fastenerf.hooks import Hook
+from fastenerf.hooks import Hook, trained_slots_now
 from fastenerf.progress import progress_bar
 from fastenerf.run import resolve_device
 
@@ -246,6 +246,7 @@ def markdown(res: dict) -> str:
             if res.get("marched_per_ray")
             else ""
         )
+        + (f", {res['trained_slots']:,} slots" if res.get("trained_slots") else "")
         + f"; **{res['wall_ms_unprofiled']:.2f} ms/step** wall without the profiler, "
         f"{res['wall_ms']:.2f} ms under it"
         + (
@@ -314,6 +315,7 @@ def run(args: argparse.Namespace) -> int:
         samples_per_ray=(sum(spr) / len(spr)) if spr else None,
         samples_per_step=(2 * n_rays * sum(spr) / len(spr)) if spr else None,
         marched_per_ray=(sum(mpr) / len(mpr)) if mpr else None,
+        trained_slots=trained_slots_now(trainer),
         session=session_info(device, args.commit),
     )
     write_report(out, "profile_step", res, markdown(res))

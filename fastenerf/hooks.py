@@ -155,7 +155,7 @@ class ScheduledEval(Hook):
             "samples_per_step": sum(samples) / max(len(samples), 1),
             "marched_per_step": n_rays * sum(marched) / max(len(marched), 1),
             "compacted_share": compacted / max(len(self.acc), 1),
-            "trained_slots": _trained_slots(trainer),
+            "trained_slots": trained_slots_now(trainer),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
             **_latest(self.acc, CALIBRATION_KEYS),
         }
@@ -185,7 +185,7 @@ CALIBRATION_KEYS = (
 )
 
 
-def _trained_slots(trainer: Trainer) -> int | None:
+def trained_slots_now(trainer: Trainer) -> int | None:
     """The field's fixed training buffer's slots now (a host int, no device read), or None."""
     slots = getattr(getattr(trainer.field, "sampler", None), "trained_slots", None)
     return None if slots is None else slots()

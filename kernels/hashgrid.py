@@ -256,8 +256,12 @@ def _kernels(
             level = levels[lv]
             g = load(grad, i, lv)
             if weighted != 0:  # x_grad_weights: this level's columns weighted in place
+                on = wp.float32(0.0)  # a dynamic variable: the loop adds to it
                 for k in range(F):
+                    on += wp.abs(weights[lv * F + k])
                     g[k] = g[k] * weights[lv * F + k]
+                if on == 0.0:
+                    continue  # a level coarse-to-fine holds off adds exactly 0: no table reads
             c, f = cell_of(p, level[0])
             d = wp.vec3()
             for k in range(8):

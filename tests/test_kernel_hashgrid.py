@@ -284,6 +284,24 @@ def test_x_grad_weights_weight_only_the_position_gradient():
         hash_grid_encode(xt, tt, cfg, x_grad_weights=w[:-1])
 
 
+def test_x_grad_weights_skip_a_level_held_off():
+    """A level coarse-to-fine holds off (weights 0) is skipped in the x-gradient, not read:
+    the finest level's rows made non-finite leave the x-gradient the float64 reference's of
+    the others (read, they would make it NaN: 0 x inf)."""
+    cfg = SMALL
+    gen, x, table = smooth_points_and_table(cfg)
+    w = torch.ones(cfg.n_output_dims)
+    w[-cfg.n_features :] = 0.0
+    g = torch.randn(len(x), cfg.n_output_dims, generator=gen, dtype=torch.float64)
+    x64 = x.double().requires_grad_(True)
+    (ref_encode(x64, table.double(), cfg) * g * w.double()).sum().backward()
+    table[cfg.level_offsets[-2] :] = float("inf")
+    xt = x.clone().requires_grad_(True)
+    (hash_grid_encode(xt, table, cfg, x_grad_weights=w) * g.float()).sum().backward()
+    scale = x64.grad.abs().max().item()
+    torch.testing.assert_close(xt.grad.double(), x64.grad, atol=1e-4 * scale, rtol=1e-4)
+
+
 def test_x_grad_mask_zeroes_only_the_masked_points_position_gradient():
     """x_grad_mask (the rays whose pose gradient is dropped): the masked points' x-gradient is
     exactly 0, the others' the float64 reference's, with the coarse-to-fine weights too; the
