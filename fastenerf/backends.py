@@ -74,11 +74,11 @@ class MarcherOptions:
     compact_below: float = field(default=0.7, metadata={"min": 0.0, "max": 1.0})
     """The share of marched samples under which `compaction_auto` compacts (the density
     pre-pass costs about 0.3 of a sample's full pass; ±0.05 hysteresis)."""
-    capacity_headroom: float = field(default=1.25, metadata={"min": 1.0, "max": 4.0})
+    capacity_headroom: float = field(default=1.1, metadata={"min": 1.0, "max": 4.0})
     """A captured training step marches into buffers of fixed capacity (fields/capacity.py):
     this times the most samples a batch wanted since the last occupancy update, rounded up
     to 32,768 slots. The field runs over every slot of the buffer, padding too."""
-    capacity_shrink_below: float = field(default=0.6, metadata={"gt": 0.0, "max": 1.0})
+    capacity_shrink_below: float = field(default=0.85, metadata={"gt": 0.0, "max": 1.0})
     """The capacity shrinks (to what the want needs) once the want falls below this share
     of it; it grows as soon as the want passes capacity / capacity_headroom."""
 

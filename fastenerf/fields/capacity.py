@@ -61,7 +61,7 @@ class SampleCapacity:
     shrink_below: the capacity shrinks when the maximum falls below this share of it.
     """
 
-    def __init__(self, quantum: int = 1 << 15, headroom: float = 1.25, shrink_below: float = 0.6):
+    def __init__(self, quantum: int = 1 << 15, headroom: float = 1.1, shrink_below: float = 0.85):
         self.quantum, self.headroom, self.shrink_below = int(quantum), headroom, shrink_below
         self.capacity: int | None = None  # None: size the next march exactly (one host read)
         self._max: torch.Tensor | None = None  # device running max of n_wanted
