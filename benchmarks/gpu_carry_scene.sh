@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # Cut a scene folder into carries that fit beside the tree under the device's 64 MiB per call,
-# each with a stage.sh that lands it on the machine; the last joins them into DATA/NAME and
-# touches DATA/NAME.ready (what `WAIT_READY` in gpu_runs60.sh waits for).
+# each with a stage.sh that lands it on the machine; whichever part completes the set (any
+# order) joins them into DATA/NAME and touches DATA/NAME.ready (what `WAIT_READY` in
+# gpu_runs60.sh waits for).
 #
 #   bash benchmarks/gpu_carry_scene.sh SCENE_DIR OUT_PREFIX [PART_MB]
 #
 # Writes OUT_PREFIX.p0, OUT_PREFIX.p1, ... (PART_MB MiB each, default 14). Carry one per call,
-# in order, each with the command `bash OUT_PREFIX.pK/stage.sh` (DATA: /var/tmp/data unless set
+# in any order, each with the command `bash OUT_PREFIX.pK/stage.sh` (DATA: /var/tmp/data unless set
 # on the machine). The scene's folder name is the name it gets there.
 # Bad input (no SCENE_DIR, a PART_MB that is no whole number, an OUT_PREFIX.p* that exists,
 # a folder for them that cannot be made) ends with one line on stderr and exit code 2 before
@@ -32,17 +33,16 @@ for k in "${!parts[@]}"; do
     d="$OUT.p$k"
     mkdir -p "$d" 2>/dev/null || fail "$d cannot be made"
     mv "${parts[$k]}" "$d/"
-    last=$([ "$k" -eq $((n - 1)) ] && echo 1 || echo 0)
     cat > "$d/stage.sh" <<SH
 # part $((k + 1)) of $n of scene $NAME (benchmarks/gpu_carry_scene.sh)
 set -e; DATA=\${DATA:-/var/tmp/data}; P="\$DATA/.parts-$NAME"; mkdir -p "\$P"
 cp "\$(dirname "\$0")"/part.* "\$P/"
-if [ $last = 1 ]; then
-  [ "\$(ls "\$P" | wc -l)" = $n ] || { echo "scene $NAME: \$(ls "\$P" | wc -l) of $n parts here" >&2; exit 2; }
+here=\$(ls "\$P" | wc -l)
+if [ "\$here" = $n ]; then
   cat "\$P"/part.* | (cd "\$DATA" && tar xf -) && rm -rf "\$P" && touch "\$DATA/$NAME.ready"
   echo "scene $NAME staged"
 else
-  echo "scene $NAME: part $((k + 1)) of $n"
+  echo "scene $NAME: part $((k + 1)) of $n (\$here of $n here)"
 fi
 SH
 done
