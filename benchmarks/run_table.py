@@ -93,6 +93,7 @@ def row(label: str, run: dict, at: list[float], base: dict | None) -> list[str]:
     cells.append(_num(None if marched is None else marched / 1e6, ".2f"))
     slots = last.get("trained_slots")
     cells.append(_num(None if slots is None else slots / 1e6, ".2f"))
+    cells.append(_num(last.get("graph_captures"), "d"))
     cells.append(_num(last.get("compacted_share"), ".2f"))
     err = last.get("pose_error_deg")
     cells.append(DASH if err is None else f"{err:.3f}°")
@@ -106,7 +107,7 @@ def table(items: list[str], at: list[float], base: str | None = None) -> str:
     runs = [load_run(folder) for _, folder in parsed]
     by_label = dict(zip((label for label, _ in parsed), runs, strict=True))
     head = ["run", *[f"{t:g} s" for t in at], "Δ", "ms/step", "trained M", "marched M", "slots M"]
-    head += ["compacting", "error left", "settled"]
+    head += ["captures", "compacting", "error left", "settled"]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     for (label, _), run in zip(parsed, runs, strict=True):
         ref = None

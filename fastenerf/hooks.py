@@ -90,7 +90,8 @@ class ScheduledEval(Hook):
     marched_per_step and step_ms, compacted_share (the share of those steps that ran on
     compacted samples: `MarcherOptions.early_stop_eps`), trained_slots (the slots, padding
     included, of the fixed-capacity buffer the field trains on now; None where buffers are
-    exactly sized), and the learnt
+    exactly sized), graph_captures (CUDA graphs captured so far in this process: one more at
+    every change of a buffer's capacity; None without a graphed step), and the learnt
     calibration's latest stats (CALIBRATION_KEYS, where the run learns it): how the poses
     and thresholds move over a run, not only where they end.
     """
@@ -156,6 +157,7 @@ class ScheduledEval(Hook):
             "marched_per_step": n_rays * sum(marched) / max(len(marched), 1),
             "compacted_share": compacted / max(len(self.acc), 1),
             "trained_slots": trained_slots_now(trainer),
+            "graph_captures": getattr(trainer.graph, "captures", None),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
             **_latest(self.acc, CALIBRATION_KEYS),
         }

@@ -120,7 +120,7 @@ def test_scheduled_eval_points_say_how_many_steps_compacted(scene, tmp_path):
     """Each point: the samples marched beside those the field ran on, the share of its
     steps that compacted (the GPU switches compaction on and off as it pays), and the slots
     of the fixed-capacity buffer the field trains on (the device step's; None when the
-    plain step sizes buffers exactly)."""
+    plain step sizes buffers exactly), and the graphs captured so far."""
     from fastenerf.evaluate import make_eval_set
 
     ev = make_eval_set(scene, 1, 0.25)
@@ -140,6 +140,7 @@ def test_scheduled_eval_points_say_how_many_steps_compacted(scene, tmp_path):
                 assert p["compacted_share"] == 0.0
                 assert p["marched_per_step"] == pytest.approx(p["samples_per_step"])
             sampler = trainer.field.sampler
+            assert p["graph_captures"] is None  # no graphed step off CUDA (test_graph_step)
             if mode == "plain":
                 assert p["trained_slots"] is None
             else:  # the compacted buffer while compacting, else the marched one
