@@ -80,7 +80,8 @@ class MarcherOptions:
     to 32,768 slots. The field runs over every slot of the buffer, padding too."""
     capacity_shrink_below: float = field(default=0.85, metadata={"gt": 0.0, "max": 1.0})
     """The capacity shrinks (to what the want needs) once the want falls below this share
-    of it; it grows as soon as the want passes capacity / capacity_headroom."""
+    of it, by two 32,768-slot quanta at least (so a want at a quantum's edge does not shrink
+    and regrow it); it grows as soon as the want passes capacity / capacity_headroom."""
 
     def __post_init__(self):
         if self.capacity_shrink_below * self.capacity_headroom >= 1.0:

@@ -195,6 +195,23 @@ def test_sample_capacity_follows_the_want_with_headroom():
         assert cap.capacity == capacity, (want, cap.capacity)
 
 
+def test_sample_capacity_does_not_flap_on_a_want_at_a_quantums_edge():
+    """A want that wobbles across the edge of a quantum (here 900 / 1.1 = 818 samples) keeps
+    its capacity: a shrink must save two quanta, so growing back needs the want to rise a
+    whole quantum (each change recaptures the training step's graph). A real fall of the
+    want still shrinks it."""
+    from fastenerf.fields.capacity import SampleCapacity
+
+    cap = SampleCapacity(quantum=100, headroom=1.1, shrink_below=0.85)
+    seen = []
+    for want in [825, 810] * 10 + [500, 500, 500]:
+        cap.observe(torch.tensor([want], dtype=torch.int32))
+        cap.refresh()
+        seen.append(cap.capacity)
+    assert seen[1:20] == [1000] * 19  # without the two-quanta rule: 900, 1000, 900, ...
+    assert seen[-1] == 600
+
+
 @pytest.mark.parametrize("backend", ["ngp", "vanilla"])
 def test_a_non_finite_ray_skips_the_step_without_a_host_check(scene, tmp_path, backend):
     """Training renders do not read the rays on the host (a sync per step): a NaN ray makes

@@ -58,7 +58,8 @@ class SampleCapacity:
     """Sample-buffer capacity of a training march: a Python int the host never waits for.
 
     quantum: capacities are multiples of it (samples); headroom: capacity / observed maximum;
-    shrink_below: the capacity shrinks when the maximum falls below this share of it.
+    shrink_below: the capacity shrinks when the maximum falls below this share of it, and
+    only by two quanta or more.
     """
 
     def __init__(self, quantum: int = 1 << 15, headroom: float = 1.1, shrink_below: float = 0.85):
@@ -94,7 +95,12 @@ class SampleCapacity:
             if self.capacity is None or wanted > self.capacity / self.headroom:
                 self.capacity = self.size_for(wanted)
             elif wanted < self.shrink_below * self.capacity:
-                self.capacity = self.size_for(wanted)
+                smaller = self.size_for(wanted)
+                # at least two quanta less, so that the want that grows it back by one must
+                # first rise a whole quantum: a want near a quantum's edge would otherwise
+                # shrink and grow the buffer (and recapture the step) at every refresh
+                if smaller <= self.capacity - 2 * self.quantum:
+                    self.capacity = smaller
         # in stream order: copy the maximum since the last copy, then start a new one
         self._read.start(self._max)
         self._max.zero_()
