@@ -7,8 +7,8 @@
 #   bash benchmarks/gpu_carry_scene.sh SCENE_DIR OUT_PREFIX [PART_MB]
 #
 # Writes OUT_PREFIX.p0, OUT_PREFIX.p1, ... (PART_MB MiB each, default 14). Carry one per call,
-# in any order, each with the command `bash OUT_PREFIX.pK/stage.sh` (DATA: /var/tmp/data unless set
-# on the machine). The scene's folder name is the name it gets there.
+# in any order, each with the command `bash OUT_PREFIX.pK/stage.sh` (DATA: /var/tmp/data
+# unless set on the machine). The scene's folder name is the name it gets there.
 # Bad input (no SCENE_DIR, a PART_MB that is no whole number, an OUT_PREFIX.p* that exists,
 # a folder for them that cannot be made) ends with one line on stderr and exit code 2 before
 # anything is written.

@@ -91,7 +91,8 @@ class ScheduledEval(Hook):
     compacted samples: `MarcherOptions.early_stop_eps`), trained_slots (the slots, padding
     included, of the fixed-capacity buffer the field trains on now; None where buffers are
     exactly sized), graph_captures (CUDA graphs captured so far in this process: one more at
-    every change of a buffer's capacity; None without a graphed step), and the learnt
+    every change of the step's graph key, e.g. a buffer's capacity; None without a graphed
+    step), and the learnt
     calibration's latest stats (CALIBRATION_KEYS, where the run learns it): how the poses
     and thresholds move over a run, not only where they end.
     """
