@@ -59,8 +59,13 @@ class SampleCapacity:
 
     quantum: capacities are multiples of it (samples); headroom: capacity / observed maximum;
     shrink_below: the capacity shrinks when the maximum falls below this share of it, and
-    only by two quanta or more.
+    only by `min_shrink` quanta or more.
     """
+
+    # Growing back by one quantum then needs the want to rise a whole quantum: with 1, a want
+    # near a quantum's edge shrinks and grows the buffer (and recaptures the step) at every
+    # refresh (benchmarks/RESULTS.md, twenty-eighth session).
+    min_shrink = 2
 
     def __init__(self, quantum: int = 1 << 15, headroom: float = 1.1, shrink_below: float = 0.85):
         self.quantum, self.headroom, self.shrink_below = int(quantum), headroom, shrink_below
@@ -96,10 +101,7 @@ class SampleCapacity:
                 self.capacity = self.size_for(wanted)
             elif wanted < self.shrink_below * self.capacity:
                 smaller = self.size_for(wanted)
-                # at least two quanta less, so that the want that grows it back by one must
-                # first rise a whole quantum: a want near a quantum's edge would otherwise
-                # shrink and grow the buffer (and recapture the step) at every refresh
-                if smaller <= self.capacity - 2 * self.quantum:
+                if smaller <= self.capacity - self.min_shrink * self.quantum:
                     self.capacity = smaller
         # in stream order: copy the maximum since the last copy, then start a new one
         self._read.start(self._max)

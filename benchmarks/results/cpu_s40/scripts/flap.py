@@ -7,8 +7,8 @@ of capacity is a change of the captured step's graph key, so a recapture on the 
 
     PYTHONPATH=. python benchmarks/results/cpu_s40/scripts/flap.py SCENE OUT
 
-Writes OUT/flap.json: per rule, the capacity changes, the capacity after every refresh (as
-quanta) and the want (the most samples a batch wanted in each interval).
+Writes OUT/flap.json: per rule, the capacity changes and the capacity after every change (as
+quanta).
 """
 
 import json
@@ -24,21 +24,6 @@ from fastenerf.hooks import Hook
 from fastenerf.train import Trainer
 
 STEPS, QUANTUM = int(os.environ.get("STEPS", "1200")), int(os.environ.get("QUANTUM", "12288"))
-
-
-def refresh_any_shrink(self: SampleCapacity) -> None:
-    """SampleCapacity.refresh before the two-quanta rule (fa3a5b4..1227f87)."""
-    if self._max is None or self._read.busy():
-        return
-    got = self._read.take()
-    if got is not None:
-        wanted = int(got.item())
-        if self.capacity is None or wanted > self.capacity / self.headroom:
-            self.capacity = self.size_for(wanted)
-        elif wanted < self.shrink_below * self.capacity:
-            self.capacity = self.size_for(wanted)
-    self._read.start(self._max)
-    self._max.zero_()
 
 
 class Watch(Hook):
@@ -76,13 +61,12 @@ def main(argv: list[str]) -> int:
     try:
         scene = load_scene_folder(argv[0])
         res = {"steps": STEPS, "quantum": QUANTUM}
-        landed = SampleCapacity.refresh
-        for rule in ("two_quanta", "any_shrink"):
-            SampleCapacity.refresh = landed if rule == "two_quanta" else refresh_any_shrink
+        for rule, min_shrink in (("two_quanta", 2), ("any_shrink", 1)):
+            SampleCapacity.min_shrink = min_shrink  # 1: any shrink, the rule before 5c2d3ee
             caps = train(scene, out / rule)
             res[rule] = {"changes": len(caps) - 1, "quanta": [c // QUANTUM for c in caps]}
             print(rule, res[rule]["changes"], "changes:", res[rule]["quanta"][:60], flush=True)
-        SampleCapacity.refresh = landed
+        SampleCapacity.min_shrink = 2
         (out / "flap.json").write_text(json.dumps(res, indent=1))
     except (InputError, OSError) as e:
         print(f"flap.py: error: {e}", file=sys.stderr)
