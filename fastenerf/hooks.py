@@ -92,7 +92,8 @@ class ScheduledEval(Hook):
     included, of the fixed-capacity buffer the field trains on now; None where buffers are
     exactly sized), graph_captures (CUDA graphs captured so far in this process: one more at
     every change of the step's graph key, e.g. a buffer's capacity; None without a graphed
-    step), and the learnt
+    step), compositing_share (the share of marched samples compositing used, as
+    `compaction_auto`'s switch last read it; None without the switch), and the learnt
     calibration's latest stats (CALIBRATION_KEYS, where the run learns it): how the poses
     and thresholds move over a run, not only where they end.
     """
@@ -159,6 +160,7 @@ class ScheduledEval(Hook):
             "compacted_share": compacted / max(len(self.acc), 1),
             "trained_slots": trained_slots_now(trainer),
             "graph_captures": getattr(trainer.graph, "captures", None),
+            "compositing_share": _compositing_share(trainer),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
             **_latest(self.acc, CALIBRATION_KEYS),
         }
@@ -192,6 +194,12 @@ def trained_slots_now(trainer: Trainer) -> int | None:
     """The field's fixed training buffer's slots now (a host int, no device read), or None."""
     slots = getattr(getattr(trainer.field, "sampler", None), "trained_slots", None)
     return None if slots is None else slots()
+
+
+def _compositing_share(trainer: Trainer) -> float | None:
+    """The compaction switch's last reading (a host float, no device read), or None."""
+    switch = getattr(getattr(trainer.field, "sampler", None), "compaction", None)
+    return None if switch is None else switch.share
 
 
 def _latest(acc: list[dict], keys: tuple[str, ...]) -> dict[str, float]:

@@ -141,11 +141,33 @@ def test_scheduled_eval_points_say_how_many_steps_compacted(scene, tmp_path):
                 assert p["marched_per_step"] == pytest.approx(p["samples_per_step"])
             sampler = trainer.field.sampler
             assert p["graph_captures"] is None  # no graphed step off CUDA (test_graph_step)
+            assert p["compositing_share"] is None  # compaction fixed on or off: no switch
             if mode == "plain":
                 assert p["trained_slots"] is None
             else:  # the compacted buffer while compacting, else the marched one
                 cap = sampler.pruned_capacity if eps else sampler.sample_capacity
                 assert p["trained_slots"] == cap.capacity >= p["samples_per_step"] > 0
+
+
+@pytest.mark.skipif(not HAVE_NGP, reason="ngp backend not built")
+def test_scheduled_eval_points_carry_the_compaction_switchs_share(scene, tmp_path):
+    """With compaction_auto, a point carries the share of marched samples compositing used,
+    as the switch last read it (None until its first reading: one refresh late)."""
+    from fastenerf.evaluate import make_eval_set
+
+    ev = make_eval_set(scene, 1, 0.25)
+    points = []
+    opts = {**NGP_TINY, "early_stop_eps": 1e-4, "compaction_auto": True, "update_every": 1}
+    cfg = tiny_cfg("ngp", steps=1000, backend_options=opts)
+    trainer = Trainer(scene, cfg, tmp_path / "run")
+    trainer.run([ScheduledEval(ev, [1e-9], points.append)])  # a point at the first step
+    for _ in range(3):  # a refresh per step: the sums copied at one are read at the next
+        trainer.step()
+    trainer.flush_stats()
+    trainer.run([ScheduledEval(ev, [trainer.train_seconds + 1e-9], points.append)])
+    shares = [p["compositing_share"] for p in points]
+    assert len(shares) == 2 and shares[0] is None and 0.0 < shares[1] <= 1.0
+    assert shares[1] == trainer.field.sampler.compaction.share
 
 
 class _ClockJump(Hook):
