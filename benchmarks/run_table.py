@@ -19,6 +19,10 @@ LABEL=DIR. Without a label a row is named by the folder's last two parts, SCENE/
 - error left: rotation error the poses still have (°, perturbed runs);
 - settled: the budget fraction at which the windows lengthened (`refine_settle_px`), from
   the run's config.json.
+With --phases, where a run's step time goes instead: ms per step between consecutive --at
+times' curve points (e.g. `--phases --at 1 5 12 30 60`), the first point from which most
+steps compacted, and the compaction switch's last reading of the share of marched samples
+compositing used (runs that record it).
 Printed, or written atomically to --out (an existing file is refused; nothing is lost).
 """
 
@@ -27,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -101,15 +106,38 @@ def row(label: str, run: dict, at: list[float], base: dict | None) -> list[str]:
     return cells
 
 
-def table(items: list[str], at: list[float], base: str | None = None) -> str:
+def phase_row(label: str, run: dict, at: list[float]) -> list[str]:
+    """One --phases row of `run`: ms per step between the points at consecutive `at` times
+    ("—" where a point is missing), where compaction came on, the last compositing share."""
+    by_target = {round(float(p.get("target_s", -1)), 3): p for p in run["points"]}
+    cells = [label]
+    for a, b in pairwise(at):
+        pa, pb = by_target.get(round(a, 3)), by_target.get(round(b, 3))
+        ms = None
+        if pa and pb and pb.get("step", 0) > pa.get("step", 0):
+            ms = 1000.0 * (pb["train_s"] - pa["train_s"]) / (pb["step"] - pa["step"])
+        cells.append(_num(ms, ".2f"))
+    on = next((p for p in run["points"] if (p.get("compacted_share") or 0) >= 0.5), None)
+    cells.append(DASH if on is None else f"{on['target_s']:g} s")
+    cells.append(_num(run["points"][-1].get("compositing_share"), ".2f"))
+    return cells
+
+
+def table(items: list[str], at: list[float], base: str | None = None, phases: bool = False) -> str:
     """The Markdown table of `items` ('[LABEL=]DIR'), every folder read before any row."""
     parsed = [parse_item(i) for i in items]
     runs = [load_run(folder) for _, folder in parsed]
     by_label = dict(zip((label for label, _ in parsed), runs, strict=True))
-    head = ["run", *[f"{t:g} s" for t in at], "Δ", "ms/step", "trained M", "marched M", "slots M"]
-    head += ["captures", "compacting", "error left", "settled"]
+    if phases:
+        head = ["run", *[f"{a:g}–{b:g} s" for a, b in pairwise(at)], "compacting from", "share"]
+    else:
+        head = ["run", *[f"{t:g} s" for t in at], "Δ", "ms/step", "trained M", "marched M"]
+        head += ["slots M", "captures", "compacting", "error left", "settled"]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     for (label, _), run in zip(parsed, runs, strict=True):
+        if phases:
+            lines.append("| " + " | ".join(phase_row(label, run, at)) + " |")
+            continue
         ref = None
         if base is not None and "/" in label:
             ref = by_label.get(label.rsplit("/", 1)[0] + "/" + base)
@@ -122,16 +150,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--at", nargs="+", type=float, default=[5, 10, 15, 30, 60],
                    help="training times (s) whose PSNR is shown")  # fmt: skip
     p.add_argument("--base", default=None, help="the NAME whose row of each scene Δ is against")
+    p.add_argument("--phases", action="store_true",
+                   help="ms per step between the --at times' points instead")  # fmt: skip
     p.add_argument("--out", default=None, help="Markdown file to write (default: print)")
 
 
 def run(args: argparse.Namespace) -> int:
     require(all(t > 0 and math.isfinite(t) for t in args.at), "--at: times must be > 0")
+    require(not args.phases or len(args.at) >= 2, "--phases needs two --at times or more")
+    require(not (args.phases and args.base), "--base gives Δ, which --phases has none of")
     if args.out is not None:
         out = Path(args.out)
         require(out.suffix.lower() == ".md", f"{out}: the table is a .md file")
         require(not out.exists(), f"{out} exists: give a new file (nothing was written)")
-    text = table(args.items, args.at, args.base)
+    text = table(args.items, args.at, args.base, args.phases)
     if args.out is None:
         print(text, end="")
         return 0

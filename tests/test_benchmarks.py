@@ -623,6 +623,34 @@ def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
 
 
+def test_run_table_phases_give_step_time_between_points(tmp_path, capsys):
+    """run_table --phases: ms per step between the points at consecutive --at times ("—"
+    where a point is missing), the first point from which most steps compacted, the last
+    compositing share; fewer than two times, or --base, refused in one line."""
+    from benchmarks import run_table
+
+    pts = [
+        {"target_s": 1.0, "train_s": 1.0, "step": 100, "compacted_share": 0.0},
+        {"target_s": 5.0, "train_s": 5.0, "step": 300, "compacted_share": 0.2},
+        {"target_s": 12.0, "train_s": 12.0, "step": 1000, "compacted_share": 1.0},
+    ]
+    pts[-1]["compositing_share"] = 0.61
+    folder = tmp_path / "s" / "none0"
+    folder.mkdir(parents=True)
+    (folder / "error_vs_time.json").write_text(json.dumps({"runs": [{"points": pts}]}))
+    assert run_table.main([str(folder), "--phases", "--at", "1", "5", "12", "30"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0] == "| run | 1–5 s | 5–12 s | 12–30 s | compacting from | share |"
+    assert lines[2] == "| s/none0 | 20.00 | 10.00 | — | 12 s | 0.61 |"
+    for bad, words in (
+        ([str(folder), "--phases", "--at", "5"], "two --at times"),
+        ([str(folder), "--phases", "--base", "none0"], "--base"),
+    ):
+        assert run_table.main(bad) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (bad, err)
+
+
 def test_gpu_carry_scene_cuts_a_scene_into_carries_whichever_completes_joins(tmp_path):
     """gpu_carry_scene.sh: parts of PART_MB MiB whose stage.sh scripts, run in any order, land
     the scene byte for byte in DATA and touch DATA/NAME.ready only once every part is there
