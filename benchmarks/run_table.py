@@ -15,6 +15,8 @@ LABEL=DIR. Without a label a row is named by the folder's last two parts, SCENE/
   compaction ran and the run records it);
 - slots: the slots (padding included) of the fixed-capacity buffer the field trained on at
   the last evaluation, millions (runs that record it);
+- captures: the CUDA graphs the run had captured by its last evaluation (one more at every
+  change of a buffer's capacity; runs that record it);
 - compacting: the share of the last evaluation interval's steps that compacted;
 - error left: rotation error the poses still have (°, perturbed runs);
 - settled: the budget fraction at which the windows lengthened (`refine_settle_px`), from
