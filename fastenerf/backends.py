@@ -82,6 +82,11 @@ class MarcherOptions:
     """The capacity shrinks (to what the want needs) once the want falls below this share
     of it, by two 32,768-slot quanta at least (so a want at a quantum's edge does not shrink
     and regrow it); it grows as soon as the want passes capacity / capacity_headroom."""
+    capacity_shrink_patience: int = field(default=1, metadata={"min": 1, "max": 64})
+    """Occupancy updates in a row whose want must allow a shrink before the capacity shrinks
+    (to the largest of them). Each change of capacity recaptures the training step's CUDA
+    graph; a want whose per-update maximum varies more than a quantum flips it back and forth
+    at 1."""
 
     def __post_init__(self):
         if self.capacity_shrink_below * self.capacity_headroom >= 1.0:

@@ -212,6 +212,33 @@ def test_sample_capacity_does_not_flap_on_a_want_at_a_quantums_edge():
     assert seen[-1] == 600
 
 
+def test_sample_capacity_with_patience_does_not_flap_on_one_low_reading_among_high_ones():
+    """A reading is the maximum want of one occupancy update's steps; batches differ, so one
+    reading in a few can be low. With `shrink_patience` k a shrink waits for k low readings
+    in a row (then goes to the largest of them); at 1, each lone low one (900 -> 700 saves
+    two quanta) shrinks the buffer and the next high one grows it back, a graph recapture
+    each way. A want that stays low still shrinks it, k - 1 updates later."""
+    from fastenerf.fields.capacity import SampleCapacity
+
+    wants = [900, 900] + [700, 900, 900] * 10 + [500] * 5
+
+    def capacities(patience: int) -> list[int]:
+        cap = SampleCapacity(quantum=100, headroom=1.1, shrink_below=0.85, shrink_patience=patience)
+        seen = []
+        for want in wants:
+            cap.observe(torch.tensor([want], dtype=torch.int32))
+            cap.refresh()
+            seen.append(cap.capacity)
+        return seen
+
+    flapping = capacities(1)
+    assert flapping[1:32].count(800) == 10  # 1000, 800, 1000, 1000, 800, ...
+    patient = capacities(3)
+    assert patient[1:32] == [1000] * 31
+    assert flapping[-4:] == [600] * 4  # the third 500 read shrinks it
+    assert patient[-4:] == [1000, 1000, 600, 600]  # two reads later
+
+
 @pytest.mark.parametrize("backend", ["ngp", "vanilla"])
 def test_a_non_finite_ray_skips_the_step_without_a_host_check(scene, tmp_path, backend):
     """Training renders do not read the rays on the host (a sync per step): a NaN ray makes

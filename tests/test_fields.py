@@ -714,14 +714,15 @@ def test_ngp_compaction_auto_keeps_compacting_only_where_it_pays(make):
 
 
 def test_ngp_capacity_options_size_the_buffers_and_trained_slots_names_them(make):
-    """capacity_headroom and capacity_shrink_below reach both fixed-capacity buffers;
+    """capacity_headroom, capacity_shrink_below and capacity_shrink_patience reach both
+    fixed-capacity buffers;
     trained_slots is the buffer the field trains on (the compacted one while compacting),
     None while buffers are exactly sized; a shrink share that would flap is refused."""
     from fastenerf.backends import parse_options
     from fastenerf.errors import InputError
 
     o, d = hit_rays(24)
-    opts = dict(capacity_headroom=2.0, capacity_shrink_below=0.3)
+    opts = dict(capacity_headroom=2.0, capacity_shrink_below=0.3, capacity_shrink_patience=3)
     for compact in (False, True):
         f = make("ngp", **opts, **({"early_stop_eps": 1e-4} if compact else {}))
         assert f.sampler.trained_slots() is None
@@ -730,7 +731,7 @@ def test_ngp_capacity_options_size_the_buffers_and_trained_slots_names_them(make
         s = f.sampler
         caps = [s.sample_capacity] + ([s.pruned_capacity] if compact else [])
         for cap in caps:
-            assert (cap.headroom, cap.shrink_below) == (2.0, 0.3)
+            assert (cap.headroom, cap.shrink_below, cap.shrink_patience) == (2.0, 0.3, 3)
             assert cap.size_for(10**6) == 62 * 2**15  # 2e6 slots, rounded up to the quantum
         assert s.trained_slots() == caps[-1].capacity >= int(out["n_samples"]) > 0
         for i, cap in enumerate(caps):  # tell the two buffers apart

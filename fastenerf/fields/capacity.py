@@ -5,7 +5,8 @@ the device to learn how many samples a batch has. The capacity follows what the 
 every step's `n_wanted` goes into a running maximum on the device; at each occupancy update the
 host starts a non-blocking copy of that maximum and, at the next update, reads the copy that has
 long arrived. The capacity then becomes the maximum times `headroom`, rounded up to `quantum`
-slots (so it changes rarely), and shrinks only once the want falls well below it.
+slots (so it changes rarely), and shrinks only once the want falls well below it (optionally
+for several updates in a row: each change recaptures the training step's CUDA graph).
 
 A step whose batch wants more than the capacity loses the rays that do not fit (the marcher
 flags them; the loss leaves their pixels out and the trainer reports the share): never silently.
@@ -13,6 +14,7 @@ flags them; the loss leaves their pixels out and the trainer reports the share):
 
 from __future__ import annotations
 
+import collections
 import math
 
 import torch
@@ -58,8 +60,9 @@ class SampleCapacity:
     """Sample-buffer capacity of a training march: a Python int the host never waits for.
 
     quantum: capacities are multiples of it (samples); headroom: capacity / observed maximum;
-    shrink_below: the capacity shrinks when the maximum falls below this share of it, and
-    only by `min_shrink` quanta or more.
+    shrink_below: the capacity shrinks when the largest of the last `shrink_patience`
+    readings (each the maximum want since the update before) falls below this share of it,
+    to that reading's size, and only by `min_shrink` quanta or more. Growing is at once.
     """
 
     # Growing back by one quantum then needs the want to rise a whole quantum: with 1, a want
@@ -67,11 +70,19 @@ class SampleCapacity:
     # refresh (benchmarks/RESULTS.md, twenty-eighth session).
     min_shrink = 2
 
-    def __init__(self, quantum: int = 1 << 15, headroom: float = 1.1, shrink_below: float = 0.85):
+    def __init__(
+        self,
+        quantum: int = 1 << 15,
+        headroom: float = 1.1,
+        shrink_below: float = 0.85,
+        shrink_patience: int = 1,
+    ):
         self.quantum, self.headroom, self.shrink_below = int(quantum), headroom, shrink_below
+        self.shrink_patience = int(shrink_patience)
         self.capacity: int | None = None  # None: size the next march exactly (one host read)
         self._max: torch.Tensor | None = None  # device running max of n_wanted
         self._read = LaggedRead()  # its copy on the host, maybe in flight
+        self._recent: collections.deque[int] = collections.deque(maxlen=self.shrink_patience)
 
     def size_for(self, wanted: int) -> int:
         """The capacity for a want of `wanted` samples: headroom, rounded up to the quantum."""
@@ -82,6 +93,7 @@ class SampleCapacity:
         """Forget the history; size from `wanted` (an exact count) or at the next march."""
         self.capacity = None if wanted is None else self.size_for(wanted)
         self._max, self._read = None, LaggedRead()
+        self._recent = collections.deque(maxlen=self.shrink_patience)
 
     def observe(self, n_wanted: torch.Tensor) -> None:
         """Fold a march's (1,) int32 device count into the running maximum (no host read)."""
@@ -96,13 +108,22 @@ class SampleCapacity:
             return  # nothing seen yet, or the last copy is in flight: keep the maximum growing
         got = self._read.take()
         if got is not None:
-            wanted = int(got.item())
-            if self.capacity is None or wanted > self.capacity / self.headroom:
-                self.capacity = self.size_for(wanted)
-            elif wanted < self.shrink_below * self.capacity:
-                smaller = self.size_for(wanted)
-                if smaller <= self.capacity - self.min_shrink * self.quantum:
-                    self.capacity = smaller
+            self._apply(int(got.item()))
         # in stream order: copy the maximum since the last copy, then start a new one
         self._read.start(self._max)
         self._max.zero_()
+
+    def _apply(self, wanted: int) -> None:
+        """Size for one reading (the maximum want of one update's steps, on the host)."""
+        self._recent.append(wanted)
+        if self.capacity is None or wanted > self.capacity / self.headroom:
+            self.capacity = self.size_for(wanted)
+            return
+        if len(self._recent) < self._recent.maxlen:
+            return
+        high = max(self._recent)
+        smaller = self.size_for(high)
+        if high < self.shrink_below * self.capacity and (
+            smaller <= self.capacity - self.min_shrink * self.quantum
+        ):
+            self.capacity = smaller

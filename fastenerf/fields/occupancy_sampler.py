@@ -152,7 +152,9 @@ class OccupancySampler:
     def _capacity(self) -> SampleCapacity:
         opt = self.options.marcher
         return SampleCapacity(
-            headroom=opt.capacity_headroom, shrink_below=opt.capacity_shrink_below
+            headroom=opt.capacity_headroom,
+            shrink_below=opt.capacity_shrink_below,
+            shrink_patience=opt.capacity_shrink_patience,
         )
 
     def _new_pruned_capacity(self) -> SampleCapacity | None:
