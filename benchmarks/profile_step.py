@@ -130,15 +130,22 @@ class ProfileSteps(Hook):
         trainer.settle_clock()
         return trainer.train_seconds
 
+    @staticmethod
+    def _captures(trainer) -> int | None:
+        """CUDA graphs the run captured so far (None: no graphed step)."""
+        return getattr(getattr(trainer, "graph", None), "captures", None)
+
     def _next(self, trainer) -> None:
         self.count = 0
         if self.phase == "warmup":
             # the same steps without the profiler first: its per-op bookkeeping slows the host
             self.phase, self.t_plain = "plain", self._clock(trainer)
+            self.captures = [self._captures(trainer)]
         elif self.phase == "plain":
             from torch.profiler import ProfilerActivity, profile
 
             self.plain_ms = 1e3 * (self._clock(trainer) - self.t_plain) / self.steps
+            self.captures.append(self._captures(trainer))
             dev = trainer.device
             acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
             self.prof = profile(activities=acts)
@@ -148,6 +155,13 @@ class ProfileSteps(Hook):
             self.wall = [(self._clock(trainer) - self._last) / self.steps] * self.steps
             self.prof.__exit__(None, None, None)
             self.result = breakdown(self.prof, trainer.device, self.wall, self.plain_ms)
+            self.captures.append(self._captures(trainer))
+            c = self.captures
+            # a capture runs the step's Python once more and its eager warm-up steps: a
+            # window with one shows their host time in the stages below, a replay none
+            self.result["captures"] = (
+                None if None in c else {"unprofiled": c[1] - c[0], "profiled": c[2] - c[1]}
+            )
             self.phase = "syncs"
             self._watch_syncs(trainer, True)
         else:
@@ -272,6 +286,14 @@ def markdown(res: dict) -> str:
         tot = sum(res["device_ms"].values()) or 1.0
         for k, v in res["device_ms"].items():
             lines.append(f"| {k} | {v:.3f} | {100 * v / tot:.0f} % |")
+    if res.get("captures"):
+        c = res["captures"]
+        lines += [
+            "",
+            f"CUDA graphs captured: {c['unprofiled']} in the unprofiled steps, "
+            f"{c['profiled']} in the profiled ones (each with its eager warm-up steps; the "
+            "host stages are those steps' and the captures' Python, a replay runs none).",
+        ]
     if res.get("host_syncs_per_step") is not None:
         where = ", ".join(res.get("host_sync_examples") or []) or "none"
         lines += ["", f"Host syncs per step: {res['host_syncs_per_step']:.2f} (at {where})."]
