@@ -715,9 +715,9 @@ def test_ngp_compaction_auto_keeps_compacting_only_where_it_pays(make):
 
 def test_ngp_capacity_options_size_the_buffers_and_trained_slots_names_them(make):
     """capacity_headroom, capacity_shrink_below and capacity_shrink_patience reach both
-    fixed-capacity buffers;
-    trained_slots is the buffer the field trains on (the compacted one while compacting),
-    None while buffers are exactly sized; a shrink share that would flap is refused."""
+    fixed-capacity buffers; trained_slots is the buffer the field trains on (the compacted one
+    while compacting), None while buffers are exactly sized; a shrink share that would flap
+    is refused."""
     from fastenerf.backends import parse_options
     from fastenerf.errors import InputError
 
