@@ -166,12 +166,6 @@ class TrainConfig:
     win_max (default: the reference's), and the corrections learn from windows up to
     refine_win_max (default: win_max) throughout. None: off (`pose_settle`), except on a
     GPU run of ngp's fast preset on a synthetic scene with win_max unset: SETTLE_PX (0.3)."""
-    refine_settle_from: float | None = field(default=None, metadata={"min": 0.0, "max": 1.0})
-    """Budget fraction from which refine_settle_px's check looks (every 5 % of the budget).
-    None: once the pose lr's warm-up is done. A look inside the warm-up holds the movement to
-    the tolerance times the lr's mean warm-up factor since the last look (what the
-    corrections would have moved at the full lr), so poses that barely move settle sooner
-    and poses held back only by the small early lr do not."""
     settle_win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
     """The field's longest window once the poses settle (refine_settle_px), views. Default:
     the fast preset's long windows, FAST_WINDOW_FRACTION of the loop (at least win_max)."""
@@ -261,8 +255,6 @@ class TrainConfig:
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
         ok = self.refine_poses or self.refine_settle_px is None
         _check(ok, where, "refine_settle_px", "needs refine_poses (it watches the corrections)")
-        ok = self.refine_settle_from is None or self.refine_settle_px is not None
-        _check(ok, where, "refine_settle_from", "needs refine_settle_px (what it looks for)")
         ok = self.settle_win_max is None or self.refine_settle_px is not None
         _check(ok, where, "settle_win_max", "needs refine_settle_px (when the windows lengthen)")
         k, shared = self.refine_knots, self.refine_shared or self.refine_shared_until > 0

@@ -10,7 +10,6 @@ rows' summed gradient); meanwhile the coarse-to-fine schedule weights the field'
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import numpy as np
@@ -51,26 +50,12 @@ def pose_lr(cfg: TrainConfig, progress: float) -> float:
     per-pose phase after refine_shared_until starts its own ramp and decay there."""
     if progress < cfg.refine_start:
         return 0.0
-    r = _schedule_fraction(cfg, progress)
-    return pose_lr_ramp(cfg, progress) * cfg.refine_lr * (cfg.refine_lr_final / cfg.refine_lr) ** r
-
-
-def _schedule_fraction(cfg: TrainConfig, progress: float) -> float:
-    """How far `progress` is into the pose lr's current schedule (0 at its start, 1 at the
-    budget's end)."""
     start = cfg.refine_start
     if 0 < cfg.refine_shared_until <= progress:
         start = pose_lr_start(cfg)
-    return (progress - start) / (1.0 - start)
-
-
-def pose_lr_ramp(cfg: TrainConfig, progress: float) -> float:
-    """`pose_lr`'s warm-up factor at training `progress` in [0, 1]: 0 before refine_start,
-    rising linearly to 1 over the schedule's first refine_warmup."""
-    if progress < cfg.refine_start:
-        return 0.0
-    r = _schedule_fraction(cfg, progress)
-    return 1.0 if cfg.refine_warmup <= 0 else min(1.0, r / cfg.refine_warmup)
+    r = (progress - start) / (1.0 - start)
+    ramp = 1.0 if cfg.refine_warmup <= 0 else min(1.0, r / cfg.refine_warmup)
+    return ramp * cfg.refine_lr * (cfg.refine_lr_final / cfg.refine_lr) ** r
 
 
 def pose_lr_start(cfg: TrainConfig) -> float:
@@ -147,12 +132,9 @@ class PoseCalibration:
             self.adam_groups.append(group)
         self.settle: PoseSettle | None = None  # lengthens the windows (refine_settle_px)
         if cfg.refine_settle_px is not None:
-            s0 = pose_lr_start(cfg)  # looks start once the pose lr's ramp is done, unless set
-            start, ramp = s0 + cfg.refine_warmup * (1.0 - s0), None
-            if cfg.refine_settle_from is not None:
-                start, ramp = cfg.refine_settle_from, functools.partial(pose_lr_ramp, cfg)
-            fx = sampler.rig.intrinsics.fx
-            self.settle = PoseSettle(cfg, sampler.windows, fx, start, ramp)
+            s0 = pose_lr_start(cfg)  # looks start once the pose lr's ramp is done
+            start = s0 + cfg.refine_warmup * (1.0 - s0)
+            self.settle = PoseSettle(cfg, sampler.windows, sampler.rig.intrinsics.fx, start)
         self.seen: torch.Tensor | None = None  # (G,) bool rows the last batch saw
         # (2B,) bool rays of the last batch whose gradient reaches a pose (None: every ray)
         self.grad_rays: torch.Tensor | None = None

@@ -5,15 +5,12 @@ long windows fit the given poses so fast that they explain the pose error away, 
 stop further from the truth even when their own gradient comes from short windows only
 (benchmarks/RESULTS.md, the twenty-fourth session). Without pose error the long windows are
 what a short run gains most from. So the field starts on win_max, and once the corrections'
-turns moved less than refine_settle_px pixels over CHECK_EVERY of the budget (looks inside
-the pose lr's warm-up, where refine_settle_from puts them, scale that by the lr's warm-up
-factor), the window sampler draws up to settle_win_max views; the corrections keep learning
-from windows up to refine_win_max (`PoseCalibration.rays`).
+turns moved less than refine_settle_px pixels over CHECK_EVERY of the budget, the window
+sampler draws up to settle_win_max views; the corrections keep learning from windows up to
+refine_win_max (`PoseCalibration.rays`).
 """
 
 from __future__ import annotations
-
-from collections.abc import Callable
 
 import torch
 
@@ -29,23 +26,12 @@ class PoseSettle:
     cfg: the resolved TrainConfig (refine_settle_px and settle_win_max set); windows: the run's
     WindowSampler, whose win_max this sets; fx: the focal length, pixels (a turn of θ radians
     moves the image by ~θ·fx pixels); start: the budget fraction from which to look (the pose
-    lr's warm-up done: before it the corrections move little whatever the pose error);
-    ramp: the pose lr's warm-up factor at a progress (`pose_lr_ramp`), for looks from inside
-    the warm-up: a look then holds the movement to the tolerance times the factor's mean since
-    the last look. None: the tolerance as it is (looks after the warm-up).
+    lr's warm-up done: before it the corrections move little whatever the pose error).
     """
 
-    def __init__(
-        self,
-        cfg: TrainConfig,
-        windows: WindowSampler,
-        fx: float,
-        start: float,
-        ramp: Callable[[float], float] | None = None,
-    ):
+    def __init__(self, cfg: TrainConfig, windows: WindowSampler, fx: float, start: float):
         self.tol_px, self.long = float(cfg.refine_settle_px), int(cfg.settle_win_max)
         self.windows, self.fx, self.start = windows, float(fx), float(start)
-        self.ramp = ramp
         self.last: tuple[float, torch.Tensor] | None = None  # (progress, turns) of the last look
         self.moved_px: float | None = None  # RMS movement between the last two looks, pixels
         self.settled_at: float | None = None  # budget fraction where the windows lengthened
@@ -68,16 +54,11 @@ class PoseSettle:
             return False
         moved = (now - last[1]).norm(dim=-1)
         self.moved_px = float(moved.square().mean().sqrt()) * self.fx
-        scale = 1.0 if self.ramp is None else self._mean_ramp(last[0], progress)
-        if scale <= 0.0 or self.moved_px >= self.tol_px * scale:
-            return False  # (scale 0: the poses had no lr since the last look, nothing to judge)
+        if self.moved_px >= self.tol_px:
+            return False
         self.windows.set_win_max(self.long)
         self.settled_at = progress
         return True
-
-    def _mean_ramp(self, a: float, b: float, n: int = 9) -> float:
-        """The warm-up factor's mean over progress [a, b] (n points: it is piecewise linear)."""
-        return sum(self.ramp(a + (b - a) * i / (n - 1)) for i in range(n)) / n
 
     def stats(self) -> dict[str, float]:
         """field_win_max (views) and, after two looks, pose_settle_px (pixels)."""

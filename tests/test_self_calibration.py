@@ -8,8 +8,6 @@ real sampler's pose grid, so the only unknowns are the ones being learnt."""
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import json
 import math
 
@@ -367,54 +365,6 @@ def test_pose_settle_lengthens_the_windows_once_the_turns_stop_moving():
     again = PoseSettle(cfg, windows, fx=100.0, start=0.1)
     again.load_state_dict(settle.state_dict())
     assert again.settled_at == 0.2 and not again.due(0.5)
-
-
-def test_pose_settle_inside_the_warm_up_scales_the_tolerance_by_the_lr_ramp():
-    """refine_settle_from puts looks inside the pose lr's warm-up: a movement is then held to
-    the tolerance times the lr's mean warm-up factor since the last look (what it would have
-    been at the full lr), and a look with no lr since the last one judges nothing."""
-    from fastenerf.pose_calibration import pose_lr, pose_lr_ramp
-    from fastenerf.pose_settle import PoseSettle
-
-    cfg = TrainConfig(refine_poses=True, refine_settle_px=0.5, settle_win_max=20)
-    cfg = dataclasses.replace(cfg, refine_start=0.1, refine_warmup=0.5 / 0.9)  # ramp 0.1 -> 0.6
-    assert pose_lr_ramp(cfg, 0.05) == 0.0 and pose_lr_ramp(cfg, 0.35) == pytest.approx(0.5)
-    no_ramp = dataclasses.replace(cfg, refine_warmup=0.0)
-    for p in (0.05, 0.2, 0.35, 0.9):  # pose_lr is the ramp times the schedule
-        assert pose_lr(cfg, p) == pytest.approx(pose_lr_ramp(cfg, p) * pose_lr(no_ramp, p))
-    windows = WindowSampler(100, 0, 100_000, 1, 5, seed=0)
-    settle = PoseSettle(cfg, windows, 100.0, 0.0, functools.partial(pose_lr_ramp, cfg))
-    turns = torch.zeros(30, 3)
-    assert settle.due(0.0) and not settle.look(0.0, turns)
-    assert not settle.look(0.1, turns)  # no lr yet: not moving says nothing
-    turns[:, 0] += 0.002  # 0.2 px at fx 100
-    # mean ramp over [0.1, 0.35] is 0.25: 0.2 px is not under 0.5 px x 0.25
-    assert not settle.look(0.35, turns) and settle.moved_px == pytest.approx(0.2)
-    turns[:, 0] += 0.002
-    # mean ramp over [0.35, 0.6] is 0.75: 0.2 px is under 0.375 px
-    assert settle.look(0.6, turns) and windows.win_max == 20 and settle.settled_at == 0.6
-    # without the ramp (looks after the warm-up) the first movement would have settled
-    plain = PoseSettle(cfg, WindowSampler(100, 0, 100_000, 1, 5, seed=0), 100.0, 0.1)
-    assert not plain.look(0.1, torch.zeros(30, 3))
-    assert plain.look(0.35, torch.tensor([[0.002, 0.0, 0.0]]).expand(30, 3))
-
-
-def test_refine_settle_from_looks_inside_the_pose_lr_warm_up(scene, tmp_path):
-    """A 40-step run whose pose lr ramps up over half the budget: its settle check looks
-    from the warm-up's end (0.5, settling at 0.55), or from refine_settle_from (0: settling at
-    the second look, 0.05, the tolerance scaled by the ramp's mean since the first)."""
-    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.5, steps=40)
-    cfg.update(refine_settle_px=1e3)
-    late = Trainer(scene, tiny(**cfg), tmp_path / "late")
-    late.run(progress=False)
-    early = Trainer(scene, tiny(**cfg, refine_settle_from=0.0), tmp_path / "early")
-    early.run(progress=False)
-    assert late.selfcal.pose_cal.settle.settled_at == pytest.approx(0.55)
-    assert early.selfcal.pose_cal.settle.settled_at == pytest.approx(0.05)
-    conf = json.loads((tmp_path / "early" / "config.json").read_text())
-    assert conf["train"]["refine_settle_from"] == 0.0
-    with pytest.raises(InputError, match="'refine_settle_from' needs refine_settle_px"):
-        tiny(refine_poses=True, refine_settle_from=0.1).validate()
 
 
 @pytest.mark.parametrize("steps_before", [1, 5])
