@@ -93,7 +93,10 @@ class ScheduledEval(Hook):
     exactly sized), graph_captures (CUDA graphs captured so far in this process: one more at
     every change of the step's graph key, e.g. a buffer's capacity; None without a graphed
     step), compositing_share (the share of marched samples compositing used, as
-    `compaction_auto`'s switch last read it; None without the switch), and the learnt
+    `compaction_auto`'s switch last read it; None without the switch), capacity_readings
+    (the marched buffer's readings since the previous point, each the most samples a march
+    wanted between two occupancy updates, which its capacity followed: `SampleCapacity`;
+    None where buffers are exactly sized), and the learnt
     calibration's latest stats (CALIBRATION_KEYS, where the run learns it): how the poses
     and thresholds move over a run, not only where they end.
     """
@@ -161,6 +164,7 @@ class ScheduledEval(Hook):
             "trained_slots": trained_slots_now(trainer),
             "graph_captures": getattr(trainer.graph, "captures", None),
             "compositing_share": _compositing_share(trainer),
+            "capacity_readings": _capacity_readings(trainer),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),
             **_latest(self.acc, CALIBRATION_KEYS),
         }
@@ -200,6 +204,12 @@ def _compositing_share(trainer: Trainer) -> float | None:
     """The compaction switch's last reading (a host float, no device read), or None."""
     switch = getattr(getattr(trainer.field, "sampler", None), "compaction", None)
     return None if switch is None else switch.share
+
+
+def _capacity_readings(trainer: Trainer) -> list[int] | None:
+    """The marched buffer's capacity readings since the last point (host ints), or None."""
+    cap = getattr(getattr(trainer.field, "sampler", None), "sample_capacity", None)
+    return None if cap is None else cap.take_readings()
 
 
 def _latest(acc: list[dict], keys: tuple[str, ...]) -> dict[str, float]:

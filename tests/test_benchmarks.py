@@ -816,3 +816,46 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (bad, err)
     assert "| mine |" in table.read_text() and not (tmp_path / "t.txt").exists()
+
+
+def test_capacity_replay_counts_what_each_patience_would_have_recaptured(tmp_path, capsys):
+    """`python -m benchmarks.capacity_replay`: a run's capacity readings through
+    `SampleCapacity` at each patience. Readings with one low in three (at the 32,768-slot
+    quantum) flap at patience 1, each shrink letting a later high reading overflow, and hold
+    at 3; a run's own headroom is used; a run without readings, a bad --patience or an
+    existing --out is one line and exit code 2, and the file is left as it was."""
+    from benchmarks import capacity_replay
+
+    q = 1 << 15
+    high, low = 9 * q, 7 * q  # sized 10 and 8 quanta at headroom 1.1: a shrink of two
+
+    def result(folder, readings, **options):
+        pts = [{"target_s": 1.0, "train_s": 1.0, "step": 1, "psnr": 20.0}]
+        pts += [{**pts[0], "capacity_readings": r} for r in readings]
+        run = {"points": pts, "train_config": {"backend_options": options}}
+        folder.mkdir(parents=True)
+        (folder / "error_vs_time.json").write_text(json.dumps({"runs": [run]}))
+
+    seq = [high, high] + [low, high, high] * 10
+    result(tmp_path / "s" / "flap", [seq[:11], [], seq[11:]])
+    result(tmp_path / "s" / "roomy", [seq], capacity_headroom=1.5, capacity_shrink_below=0.5)
+    result(tmp_path / "s" / "old", [None])
+    argv = [str(tmp_path / "s" / "flap"), str(tmp_path / "s" / "roomy"), "--patience", "1", "3"]
+    assert capacity_replay.main(argv) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[-2] == "| s/flap | 32 | 20 (19) · +0.0% · 10 | 0 (0) · +6.7% · 0 |"
+    assert lines[-1] == "| s/roomy | 32 | 0 (0) · +0.0% · 0 | 0 (0) · +0.0% · 0 |"
+    table = tmp_path / "t.md"
+    assert capacity_replay.main([str(tmp_path / "s" / "flap"), "--out", str(table)]) == 0
+    kept = table.read_text()
+    assert "| s/flap | 32 | 20 (19) · +0.0% · 10 |" in kept
+    capsys.readouterr()
+    for bad, words in (
+        ([str(tmp_path / "s" / "old")], "no capacity_readings"),
+        ([str(tmp_path / "s" / "flap"), "--patience", "0"], "--patience"),
+        ([str(tmp_path / "s" / "flap"), "--out", str(table)], "exists"),
+    ):
+        assert capacity_replay.main(bad) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (bad, err)
+    assert table.read_text() == kept

@@ -143,7 +143,7 @@ def test_scheduled_eval_points_say_how_many_steps_compacted(scene, tmp_path):
             assert p["graph_captures"] is None  # no graphed step off CUDA (test_graph_step)
             assert p["compositing_share"] is None  # compaction fixed on or off: no switch
             if mode == "plain":
-                assert p["trained_slots"] is None
+                assert p["trained_slots"] is None and p["capacity_readings"] is None
             else:  # the compacted buffer while compacting, else the marched one
                 cap = sampler.pruned_capacity if eps else sampler.sample_capacity
                 assert p["trained_slots"] == cap.capacity >= p["samples_per_step"] > 0
@@ -168,6 +168,37 @@ def test_scheduled_eval_points_carry_the_compaction_switchs_share(scene, tmp_pat
     shares = [p["compositing_share"] for p in points]
     assert len(shares) == 2 and shares[0] is None and 0.0 < shares[1] <= 1.0
     assert shares[1] == trainer.field.sampler.compaction.share
+
+
+@pytest.mark.skipif(not HAVE_NGP, reason="ngp backend not built")
+def test_scheduled_eval_points_carry_the_capacity_readings_since_the_last(scene, tmp_path):
+    """With the device step, a point carries the marched buffer's readings since the point
+    before (each the most a march wanted between two occupancy updates, read one update
+    late), oldest first: each reading of the run is in exactly one point."""
+    from fastenerf.evaluate import make_eval_set
+
+    ev = make_eval_set(scene, 1, 0.25)
+    points, seen = [], []
+    opts = {**NGP_TINY, "update_every": 1}
+    cfg = tiny_cfg("ngp", steps=1000, backend_options=opts, step_mode="device")
+    trainer = Trainer(scene, cfg, tmp_path / "run")
+    cap = trainer.field.sampler.sample_capacity
+    apply = cap.apply
+
+    def watch(wanted: int) -> None:
+        seen.append(wanted)
+        apply(wanted)
+
+    cap.apply = watch
+    trainer.run([ScheduledEval(ev, [1e-9], points.append)])
+    for _ in range(4):  # a refresh per step: the maximum copied at one is read at the next
+        trainer.step()
+    trainer.flush_stats()
+    trainer.run([ScheduledEval(ev, [trainer.train_seconds + 1e-9], points.append)])
+    readings = [p["capacity_readings"] for p in points]
+    assert len(readings) == 2 and len(readings[1]) >= 3
+    assert readings[0] + readings[1] == seen and all(w > 0 for w in seen)
+    assert cap.take_readings() == []  # taken by the points
 
 
 class _ClockJump(Hook):

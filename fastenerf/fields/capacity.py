@@ -69,6 +69,9 @@ class SampleCapacity:
     # near a quantum's edge shrinks and grows the buffer (and recaptures the step) at every
     # refresh (benchmarks/RESULTS.md, twenty-eighth session).
     min_shrink = 2
+    # The host readings kept for the run's record until someone takes them (the error-vs-time
+    # curve points do): at 16 steps a reading, well over an hour of a GPU run between points.
+    keep_readings = 1 << 14
 
     def __init__(
         self,
@@ -83,6 +86,7 @@ class SampleCapacity:
         self._max: torch.Tensor | None = None  # device running max of n_wanted
         self._read = LaggedRead()  # its copy on the host, maybe in flight
         self._recent: collections.deque[int] = collections.deque(maxlen=self.shrink_patience)
+        self._readings: collections.deque[int] = collections.deque(maxlen=self.keep_readings)
 
     def size_for(self, wanted: int) -> int:
         """The capacity for a want of `wanted` samples: headroom, rounded up to the quantum."""
@@ -108,13 +112,22 @@ class SampleCapacity:
             return  # nothing seen yet, or the last copy is in flight: keep the maximum growing
         got = self._read.take()
         if got is not None:
-            self._apply(int(got.item()))
+            self.apply(int(got.item()))
         # in stream order: copy the maximum since the last copy, then start a new one
         self._read.start(self._max)
         self._max.zero_()
 
-    def _apply(self, wanted: int) -> None:
-        """Size for one reading (the maximum want of one update's steps, on the host)."""
+    def take_readings(self) -> list[int]:
+        """The readings applied since the last call, oldest first (at most `keep_readings`),
+        and forget them: what the capacity followed, for replaying other rules offline."""
+        out = list(self._readings)
+        self._readings.clear()
+        return out
+
+    def apply(self, wanted: int) -> None:
+        """Size for one reading: the most samples a march wanted since the update before (a
+        host int; `refresh` reads it from the device one update late)."""
+        self._readings.append(wanted)
         self._recent.append(wanted)
         if self.capacity is None or wanted > self.capacity / self.headroom:
             self.capacity = self.size_for(wanted)
