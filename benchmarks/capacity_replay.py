@@ -19,15 +19,13 @@ from __future__ import annotations
 
 import argparse
 from itertools import pairwise
-from pathlib import Path
 from typing import Any
 
 from fastenerf.backends import MarcherOptions
 from fastenerf.errors import InputError, require
 from fastenerf.fields.capacity import SampleCapacity
-from fastenerf.io import atomic_path
 
-from .cli import benchmark_main
+from .cli import benchmark_main, check_table_out, print_or_write_table
 from .run_table import load_run, parse_item
 
 
@@ -96,21 +94,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     require(all(1 <= k <= 64 for k in args.patience), "--patience: values in [1, 64]")
-    if args.out is not None:
-        out = Path(args.out)
-        require(out.suffix.lower() == ".md", f"{out}: the table is a .md file")
-        require(not out.exists(), f"{out} exists: give a new file (nothing was written)")
-    text = table(args.items, args.patience)
-    if args.out is None:
-        print(text, end="")
-        return 0
-    try:
-        with atomic_path(args.out) as tmp:
-            tmp.write_text(text)
-    except OSError as e:
-        raise InputError(f"{args.out}: cannot be written ({e.strerror or e})") from None
-    print(args.out)
-    return 0
+    check_table_out(args.out)
+    return print_or_write_table(table(args.items, args.patience), args.out)
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:

@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable
+from pathlib import Path
 
-from fastenerf.errors import FastenerfError
+from fastenerf.errors import FastenerfError, InputError, require
+from fastenerf.io import atomic_path
 from fastenerf.outputs import OutputKind, claim_output
 
 # A benchmark's --out folder: written into (its own files replaced one by one), never
@@ -48,3 +50,26 @@ def add_run_arguments(p: argparse.ArgumentParser, out: str) -> None:
     p.add_argument("--out", default=out, help="output folder")
     p.add_argument("--commit", default=None, help="git commit to record")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def check_table_out(out: str | None) -> None:
+    """Refuse a Markdown table's --out before any work: it must be a new .md file."""
+    if out is not None:
+        path = Path(out)
+        require(path.suffix.lower() == ".md", f"{path}: the table is a .md file")
+        require(not path.exists(), f"{path} exists: give a new file (nothing was written)")
+
+
+def print_or_write_table(text: str, out: str | None) -> int:
+    """Print `text`, or write it atomically to `out` (checked by `check_table_out`) and
+    print its name. Returns 0."""
+    if out is None:
+        print(text, end="")
+        return 0
+    try:
+        with atomic_path(out) as tmp:
+            tmp.write_text(text)
+    except OSError as e:
+        raise InputError(f"{out}: cannot be written ({e.strerror or e})") from None
+    print(out)
+    return 0

@@ -38,9 +38,8 @@ from pathlib import Path
 from typing import Any
 
 from fastenerf.errors import InputError, require
-from fastenerf.io import atomic_path
 
-from .cli import benchmark_main
+from .cli import benchmark_main, check_table_out, print_or_write_table
 
 DASH = "—"
 
@@ -161,21 +160,8 @@ def run(args: argparse.Namespace) -> int:
     require(all(t > 0 and math.isfinite(t) for t in args.at), "--at: times must be > 0")
     require(not args.phases or len(args.at) >= 2, "--phases needs two --at times or more")
     require(not (args.phases and args.base), "--base gives Δ, which --phases has none of")
-    if args.out is not None:
-        out = Path(args.out)
-        require(out.suffix.lower() == ".md", f"{out}: the table is a .md file")
-        require(not out.exists(), f"{out} exists: give a new file (nothing was written)")
-    text = table(args.items, args.at, args.base, args.phases)
-    if args.out is None:
-        print(text, end="")
-        return 0
-    try:
-        with atomic_path(args.out) as tmp:
-            tmp.write_text(text)
-    except OSError as e:
-        raise InputError(f"{args.out}: cannot be written ({e.strerror or e})") from None
-    print(args.out)
-    return 0
+    check_table_out(args.out)
+    return print_or_write_table(table(args.items, args.at, args.base, args.phases), args.out)
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
