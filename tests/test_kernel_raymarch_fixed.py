@@ -170,8 +170,7 @@ def _field(o, d, t_s, t_e, ri):
     return sigma, torch.sigmoid(3.0 * x)
 
 
-def _render(o, d, t_s, t_e, ri, pi, bg):
-    sig, rgb = _field(o, d, t_s, t_e, ri)
+def _render(sig, rgb, t_s, t_e, ri, pi, bg):
     sig, rgb = sig.detach().requires_grad_(), rgb.detach().requires_grad_()
     out = composite(sig, rgb, t_s, t_e, pi, ri, background=bg)
     dist = distortion_loss(out["weights"], t_s, t_e, pi)
@@ -196,8 +195,16 @@ def test_composite_over_fixed_buffers_equals_exact(slack):
     f = march_rays_fixed(*args, capacity=capacity)
     n = int(f.n_used)
     bg = torch.tensor([0.2, 0.4, 0.9])
-    ref, ref_dist, ref_gs, ref_gc = _render(o, d, ts, te, ri, pi, bg)
-    out, dist, gs, gc = _render(o, d, f.t_starts, f.t_ends, f.ray_indices, f.packed_info, bg)
+    sig, rgb = _field(o, d, f.t_starts, f.t_ends, f.ray_indices)
+    ref_sig, ref_rgb = _field(o, d, ts, te, ri)
+    # The same samples give the same field values only up to an ulp: torch's vectorised loop
+    # and its tail round differently, and the tail falls elsewhere in a longer buffer (seed
+    # 1174341980 on CI). Share the values so that compositing alone is compared exactly.
+    torch.testing.assert_close(sig[:n], ref_sig[:n])
+    torch.testing.assert_close(rgb[:n], ref_rgb[:n])
+    ref_sig, ref_rgb = torch.cat([sig[:n], ref_sig[n:]]), torch.cat([rgb[:n], ref_rgb[n:]])
+    ref, ref_dist, ref_gs, ref_gc = _render(ref_sig, ref_rgb, ts, te, ri, pi, bg)
+    out, dist, gs, gc = _render(sig, rgb, f.t_starts, f.t_ends, f.ray_indices, f.packed_info, bg)
     keep = ~f.overflow
     assert f.overflow.any() == (slack < 0)
     for k in ("rgb", "depth", "opacity"):
