@@ -18,9 +18,12 @@ occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plain
 - CPU only: the ops with the most self CPU time (Warp kernels appear as their autograd
   functions, e.g. _HashGridEncodeBackward).
 `--variant` trains one of benchmarks.cpu_preset's variants instead of the preset's defaults
-(e.g. `before`: the GPU sizes and dense Adam, ngp on a CPU before issue #18).
+(e.g. `before`: the GPU sizes and dense Adam, ngp on a CPU before issue #18); given several
+times, each variant is profiled in turn (its run in OUT/NAME) and the report puts them side by
+side first (one lease's call profiles a plain and a refined step, say).
 
-Outputs in OUT: profile_step.json and profile_step.md (the table for benchmarks/RESULTS.md).
+Outputs in OUT: profile_step.json and profile_step.md (the table for benchmarks/RESULTS.md);
+with several variants the JSON's "variants" holds one result each.
 """
 
 from __future__ import annotations
@@ -301,24 +304,19 @@ def markdown(res: dict) -> str:
     return "\n".join(lines)
 
 
-def run(args: argparse.Namespace) -> int:
+def profile_one(scene, args: argparse.Namespace, device, run_dir: Path, variant) -> dict:
+    """One trainer profiled (`ProfileSteps`) in `run_dir`: the preset's, or `variant`'s
+    (NAME, spec) from benchmarks.cpu_preset; the result dict `markdown` takes."""
     from fastenerf.train import Trainer
 
-    if args.steps < 1 or args.warmup < 0:
-        raise InputError("--steps must be >= 1 and --warmup >= 0")
-    device = resolve_device(args.device)
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    scene = load_scene_dir(args.scene)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if args.variant:
-        name, spec = parse_variant(args.variant)
-        trainer = build(scene, "run", spec, 300.0, out, str(device))
-        args.backend = f"{spec.get('backend', 'ngp')}, variant {name}"
+    backend = args.backend
+    if variant:
+        name, spec = variant
+        trainer = build(scene, run_dir.name, spec, 300.0, run_dir.parent, str(device))
+        backend = f"{spec.get('backend', 'ngp')}, variant {name}"
     else:
         cfg = make_config(args.backend, args.preset, 300.0, str(device))
-        trainer = Trainer(scene, cfg, out / "run")
+        trainer = Trainer(scene, cfg, run_dir)
     hook = ProfileSteps(args.warmup, args.steps, progress=not args.quiet)
     trainer.run(hooks=[hook])
     if hook.result is None:
@@ -330,7 +328,7 @@ def run(args: argparse.Namespace) -> int:
     n_rays = trainer.cfg.rays_per_step
     res.update(
         scene=Path(args.scene).resolve().name,
-        backend=args.backend,
+        backend=backend,
         preset=args.preset,
         warmup=args.warmup,
         rays_per_step=n_rays,
@@ -340,8 +338,64 @@ def run(args: argparse.Namespace) -> int:
         trained_slots=trained_slots_now(trainer),
         session=session_info(device, args.commit),
     )
-    write_report(out, "profile_step", res, markdown(res))
+    return res
+
+
+def parse_variants(texts: list[str] | None) -> list[tuple[str, dict]]:
+    """--variant NAME[=JSON] ... -> [(name, spec)], every name once (each is a run folder)."""
+    variants = [parse_variant(t) for t in texts or []]
+    names = [n for n, _ in variants]
+    for n in names:
+        if not re.fullmatch(r"[A-Za-z0-9_.-]+", n) or n in (".", ".."):
+            raise InputError(f"--variant {n!r}: a name is letters, digits, '_', '-' and '.'")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"--variant {dup[0]}: given twice (each variant needs its own name)")
+    return variants
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.steps < 1 or args.warmup < 0:
+        raise InputError("--steps must be >= 1 and --warmup >= 0")
+    variants = parse_variants(args.variant)
+    device = resolve_device(args.device)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    scene = load_scene_dir(args.scene)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if len(variants) <= 1:
+        res = profile_one(scene, args, device, out / "run", variants[0] if variants else None)
+        write_report(out, "profile_step", res, markdown(res))
+        return 0
+    # several: one after another in this process, each in its own run folder, side by side
+    rows = [profile_one(scene, args, device, out / name, (name, spec)) for name, spec in variants]
+    res = {"variants": rows, "session": rows[0]["session"]}
+    md = side_by_side(rows) + "\n" + "\n".join(markdown(r) for r in rows)
+    write_report(out, "profile_step", res, md)
     return 0
+
+
+def side_by_side(rows: list[dict]) -> str:
+    """One line per profiled variant: the step, the device's share, samples, captures."""
+    lines = [
+        f"### Training step profiles side by side — {rows[0]['scene']}, "
+        f"{rows[0]['session']['machine']['name']} (one process, one after another)",
+        "",
+        "| variant | ms/step | device ms | busy | samples/step | slots | captures |",
+        "|---|---:|---:|---:|---:|---:|---|",
+    ]
+    for r in rows:
+        dev = r["device_busy_ms"]
+        c = r.get("captures")
+        lines.append(
+            f"| {r['backend'].rpartition('variant ')[2]} | {r['wall_ms_unprofiled']:.2f} | "
+            + (f"{dev:.2f} | {100 * dev / r['wall_ms_unprofiled']:.0f} % | " if dev else "— | — | ")
+            + (f"{r['samples_per_step']:,.0f} | " if r.get("samples_per_step") else "— | ")
+            + (f"{r['trained_slots']:,} | " if r.get("trained_slots") else "— | ")
+            + (f"{c['unprofiled']} + {c['profiled']} |" if c else "— |")
+        )
+    return "\n".join(lines) + "\n"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -353,8 +407,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_run_arguments(p, "runs/bench/profile_step")
     p.add_argument(
         "--variant",
+        action="append",
         metavar="NAME[=JSON]",
-        help="a benchmarks.cpu_preset variant (built-in name or NAME=JSON) instead of --preset",
+        help="a benchmarks.cpu_preset variant (built-in name or NAME=JSON) instead of --preset; "
+        "repeat it to profile several one after another, side by side (OUT/NAME each)",
     )
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
 

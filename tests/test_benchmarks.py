@@ -298,6 +298,29 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     assert res["captures"] in (None, {"unprofiled": 0, "profiled": 0})
 
 
+def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):
+    from benchmarks import profile_step as ps
+
+    argv = ["--scene", str(tiny_scene), "--device", "cpu", "--warmup", "1", "--steps", "2"]
+    refine = 'ref={"train": {"refine_poses": true}}'
+    out = tmp_path / "prof"
+    assert ps.main(argv + ["--variant", "plain={}", "--variant", refine, "--out", str(out)]) == 0
+    res = json.loads((out / "profile_step.json").read_text())
+    plain, ref = res["variants"]  # both profiled, in the order given, each in its own run
+    assert plain["backend"] == "ngp, variant plain" and ref["backend"] == "ngp, variant ref"
+    assert plain["wall_ms_unprofiled"] > 0 and ref["wall_ms_unprofiled"] > 0
+    assert json.loads((out / "ref" / "config.json").read_text())["train"]["refine_poses"]
+    md = (out / "profile_step.md").read_text()
+    assert "| plain |" in md and "| ref |" in md and md.count("### Training step profile —") == 2
+    # a name given twice, or one that is no folder name, is refused before any work
+    capsys.readouterr()
+    for bad in (["--variant", "a={}", "--variant", "a={}"], ["--variant", "../a={}"]):
+        assert ps.main(argv + bad + ["--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--variant" in err[0], err
+        assert not (tmp_path / "x" / "profile_step.json").exists()
+
+
 def test_step_ops_counts_every_stage_on_cpu(tiny_scene, tmp_path, capsys):
     """`python -m benchmarks.step_ops`: aten ops, autograd nodes and Warp launches per step,
     by the step's named ranges; a missing scene folder is one line and exit code 2."""
