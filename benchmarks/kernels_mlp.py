@@ -1,6 +1,7 @@
 """Benchmark of the fused MLP (kernels/mlp.py) against the same MLPs in plain PyTorch.
 
-For the ngp field's two MLPs (density 32 -> 64 -> 16, colour 31 -> 64 -> 64 -> 3, no biases),
+For the ngp field's two MLPs (density 32 -> 64 -> 16, colour 31 -> 64 -> 64 -> 3 unpadded, no
+biases; `benchmarks.mlp_widths` times the colour one padded as the field runs it),
 times the forward (no grad) and the forward + backward (gradients w.r.t. x and every weight) of
 - ``torch_fp32``: the field's `nn.Sequential` in float32,
 - ``torch_bf16``: the same under ``torch.autocast(device, torch.bfloat16)`` (what training

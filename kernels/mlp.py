@@ -5,7 +5,8 @@ cuBLASDx products without tensor cores, one block per SM in the colour backward;
 command in benchmarks/RESULTS.md), so it stays a benchmarked alternative to tune (TF32, bf16).
 
 The op: ``y = W_{L-1} relu(... relu(W_1 relu(W_0 x)))`` per row, no biases (the ngp field's
-density MLP 32 -> 64 -> 16 and colour MLP 31 -> 64 -> 64 -> 3, `fastenerf.fields.ngp._mlp`).
+density MLP 32 -> 64 -> 16 and its colour MLP's function, 31 -> 64 -> 64 -> 3, which the field
+runs padded to 32 -> 64 -> 64 -> 8 for cuBLAS: `fastenerf.fields.mlp`).
 - x: (N, C_0) float32, N >= 0 (any N). Row-major, or column-major (a transposed (C_0, N)
   array, as `hash_grid_encode` returns its features) read in place; other strides are copied.
 - weights: L tensors (C_{k+1}, C_k) float32 in nn.Linear's (out, in) layout.

@@ -298,6 +298,21 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     assert res["captures"] in (None, {"unprofiled": 0, "profiled": 0})
 
 
+def test_mlp_widths_times_the_padded_colour_mlp_beside_the_unpadded_on_cpu(tmp_path, capsys):
+    from benchmarks import mlp_widths
+
+    out = tmp_path / "m.json"
+    argv = ["--device", "cpu", "--n", "256", "--geo", "10", "--repeats", "1"]
+    assert mlp_widths.main(argv + ["--out", str(out)]) == 0
+    rows = {r["variant"]: r for r in json.loads(out.read_text())}
+    assert set(rows) == {"unpadded", "padded", "density"}
+    assert rows["unpadded"]["speedup_fwdbwd"] == 1.0 and rows["padded"]["fwdbwd_ms"] > 0
+    assert rows["padded"]["max_diff"] < 1e-2  # the same function (bf16 rounding at most)
+    assert "| " not in capsys.readouterr().out  # a plain table on stdout
+    assert mlp_widths.main(["--device", "cpu", "--n", "0", "--out", str(tmp_path / "x.json")]) == 2
+    assert not (tmp_path / "x.json").exists()
+
+
 def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):
     from benchmarks import profile_step as ps
 

@@ -33,6 +33,8 @@ from ..kernels.ray_points import ray_points
 from ..kernels.raymarch_fixed import FixedSamples
 from ..kernels.sh import sh_encode
 from .base import Field, RenderOutput, check_points, park_non_finite
+from .mlp import ColorMLP
+from .mlp import mlp as _mlp
 from .occupancy_sampler import OccupancySampler
 
 # Optical depth across the box of a new field's fog (density_bias None): e^-9 ≈ 1e-4 of the
@@ -83,17 +85,6 @@ def _n_used(samples) -> int | torch.Tensor:
     """Slots holding samples: a Python int for exactly sized ones, a 0-dim device count for a
     FixedSamples (never read here)."""
     return samples.n_used[0] if isinstance(samples, FixedSamples) else int(len(samples[1]))
-
-
-def _mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int) -> nn.Sequential:
-    # No biases, like tiny-cuda-nn's fully fused MLPs: the hash features carry the offsets.
-    layers: list[nn.Module] = []
-    d = n_in
-    for _ in range(n_hidden_layers):
-        layers += [nn.Linear(d, hidden, bias=False), nn.ReLU(inplace=True)]
-        d = hidden
-    layers.append(nn.Linear(d, n_out, bias=False))
-    return nn.Sequential(*layers)
 
 
 class _OnSampler:
@@ -157,7 +148,7 @@ class NGPField(Field):
         gen = torch.Generator().manual_seed(seed)
         self.table = nn.Parameter(init_table(self.grid_cfg, "cpu", generator=gen))
         self.density_net = _mlp(self.grid_cfg.n_output_dims, net.hidden, 1 + net.geo_features, 1)
-        self.color_net = _mlp(net.geo_features + 16, net.hidden, 3, 2)
+        self.color_net = ColorMLP(net.geo_features, net.hidden)
         self.sampler = OccupancySampler(aabb, opt, cylinder, device)
         self.to(device)
 
@@ -215,7 +206,8 @@ class NGPField(Field):
     def _geometry(
         self, x: torch.Tensor, x_grad_mask: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """σ (N,) float32 and geometry features (N, geo_features) at world points x (N, 3);
+        """σ (N,) float32 and h (N, 1 + geo_features), the density MLP's output in its dtype (σ's
+        logit first, then the geometry features the colour MLP reads), at world points x (N, 3);
         x_grad_mask: optional (N,) bool, the points whose gradient w.r.t. x is read (the
         others get none: `hash_grid_encode`)."""
         xn, w, cfg = self._normalise(_cast(x, torch.float32)), None, self.grid_cfg
@@ -234,14 +226,11 @@ class NGPField(Field):
             feats = feats if w is None else feats * w
         h = self.density_net(_cast(feats, self.density_net[0].weight.dtype))
         net = self.options.network
-        # one split, not an index and a slice: its backward is one concatenation of the two
-        # gradients, theirs two zero-filled copies and a sum
-        logit, geo = h.split([1, h.shape[1] - 1], dim=1)
-        logit = _cast(logit.squeeze(1), torch.float32) + net.density_bias
+        logit = _cast(h[:, 0], torch.float32) + net.density_bias
         sigma = trunc_exp(logit, net.max_log_density)
         if self.cylinder is not None:
             sigma = clip_density(sigma, x, self.cylinder)
-        return sigma, geo
+        return sigma, h
 
     def _sigma(self, x: torch.Tensor) -> torch.Tensor:
         """σ (N,) float32 at world points x (N, 3), unchecked: for the sampler's own points
@@ -252,9 +241,10 @@ class NGPField(Field):
         check_points("x", x, "NGPField.density")
         return self._sigma(x)
 
-    def _radiance(self, geo: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
-        sh = sh_encode(as_float32(d))
-        rgb = self.color_net(torch.cat([geo, _cast(sh, geo.dtype)], -1))
+    def _radiance(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+        """Colours (N, 3) float32 in (0, 1) from `_geometry`'s h (N, 1 + geo_features) and unit
+        view directions d (N, 3)."""
+        rgb = self.color_net(h, sh_encode(as_float32(d)))
         return torch.sigmoid(_cast(rgb, torch.float32))
 
     def color(self, x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
@@ -288,8 +278,8 @@ class NGPField(Field):
             keep = None  # the samples whose position gradient is read (the encoding's mask)
             if grad_rays is not None and x.requires_grad:
                 keep = grad_rays.index_select(0, ray_idx)
-            sigma, geo = self._geometry(x, keep)
-            rgb = self._radiance(geo, d)
+            sigma, h = self._geometry(x, keep)
+            rgb = self._radiance(h, d)
         with record_function("composite"):
             out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
         if train and self.compaction is not None:

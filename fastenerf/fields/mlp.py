@@ -1,0 +1,98 @@
+"""The ngp field's tiny MLPs, the colour one with widths that suit the GPU's tensor cores.
+
+cuBLAS runs a bf16 GEMM whose rows are not a multiple of 8 elements (16 bytes) long on its
+slow `align1` kernels. The colour MLP over [geometry features (15), SH (16)] has a 31-wide
+input and a 3-wide output, so six of its GEMMs (forward and backward) ran on them: 1.8 of the
+3.0 ms its MLPs took in a 7.9 ms-device step of the mesh scene on an H200
+(benchmarks/RESULTS.md, the thirty-first session). `ColorMLP` computes the same function
+with aligned widths, as tiny-cuda-nn pads its networks:
+
+- its input is the density MLP's whole output (σ logit first, then the geometry features)
+  with the logit multiplied by 0, beside SH: 16 + 16 = 32 for the default widths (zero
+  columns pad other widths to a multiple of 8);
+- its output layer has 8 rows; the first 3 are the colour.
+
+The weights on the zeroed input and of the unused outputs start at 0 and get no gradient (a
+zero input, an output nothing reads), so the padded MLP computes what the unpadded one of the
+same initial weights does; a checkpoint of the unpadded MLP loads into it, padded with zeros.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+ALIGN = 8  # elements: 16 bytes of bf16, what cuBLAS's vectorised kernels need of a row
+N_SH = 16  # the degree-4 SH encoding's width
+N_RGB = 3
+
+
+def aligned(n: int) -> int:
+    """n rounded up to a multiple of ALIGN."""
+    return -(-n // ALIGN) * ALIGN
+
+
+def mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int) -> nn.Sequential:
+    """Linear (no bias) + ReLU per hidden layer, then a linear output: (N, n_in) -> (N, n_out)."""
+    # No biases, like tiny-cuda-nn's fully fused MLPs: the hash features carry the offsets.
+    layers: list[nn.Module] = []
+    d = n_in
+    for _ in range(n_hidden_layers):
+        layers += [nn.Linear(d, hidden, bias=False), nn.ReLU(inplace=True)]
+        d = hidden
+    layers.append(nn.Linear(d, n_out, bias=False))
+    return nn.Sequential(*layers)
+
+
+class ColorMLP(nn.Sequential):
+    """Colour logits (N, 3) from the density MLP's output h (N, 1 + geo_features), σ logit
+    first, and the view directions' SH (N, 16); two hidden layers of `hidden`, no biases.
+
+    Its layers are `mlp(geo_features + 16, hidden, 3, 2)`'s, drawn from torch's generator in
+    the same order (the same initial function), with the first layer's input and the last
+    layer's output padded with zero weights (module docstring). The output is in the
+    layers' dtype (bf16 under autocast), a view of the padded one's first 3 columns.
+    """
+
+    def __init__(self, geo_features: int, hidden: int):
+        plain = mlp(geo_features + N_SH, hidden, N_RGB, 2)
+        super().__init__(*plain)
+        self.n_h = 1 + geo_features
+        self.n_pad = aligned(self.n_h + N_SH) - (self.n_h + N_SH)
+        with torch.no_grad():
+            first, last = self[0], self[len(self) - 1]
+            self[0] = nn.Linear(first.in_features + 1 + self.n_pad, hidden, bias=False)
+            self[0].weight.copy_(self._pad_in(first.weight))
+            self[len(self) - 1] = nn.Linear(hidden, aligned(N_RGB), bias=False)
+            self[len(self) - 1].weight.copy_(self._pad_out(last.weight))
+        mask = torch.ones(self.n_h)
+        mask[0] = 0.0
+        self.register_buffer("h_mask", mask, persistent=False)
+
+    def _pad_in(self, w: torch.Tensor) -> torch.Tensor:
+        """(hidden, geo + 16) first-layer weights -> (hidden, aligned): a zero column for the
+        σ logit in front, zero columns for the padding behind."""
+        rows = w.shape[0]
+        return torch.cat([w.new_zeros(rows, 1), w, w.new_zeros(rows, self.n_pad)], 1)
+
+    @staticmethod
+    def _pad_out(w: torch.Tensor) -> torch.Tensor:
+        """(3, hidden) output weights -> (aligned(3), hidden), zero rows behind."""
+        return torch.cat([w, w.new_zeros(aligned(N_RGB) - N_RGB, w.shape[1])], 0)
+
+    def forward(self, h: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
+        parts = [h * self.h_mask.to(h.dtype), sh.to(h.dtype)]
+        if self.n_pad:
+            parts.append(h.new_zeros(()).expand(h.shape[0], self.n_pad))
+        return super().forward(torch.cat(parts, 1))[:, :N_RGB]
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # a checkpoint of the unpadded MLP (written before the thirty-first session)
+        first, last = f"{prefix}0.weight", f"{prefix}{len(self) - 1}.weight"
+        w = state_dict.get(first)
+        if w is not None and w.shape[1] == self.n_h - 1 + N_SH:
+            state_dict[first] = self._pad_in(w)
+        w = state_dict.get(last)
+        if w is not None and w.shape[0] == N_RGB:
+            state_dict[last] = self._pad_out(w)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

@@ -1,0 +1,92 @@
+"""The ngp colour MLP's tensor-core widths (fastenerf/fields/mlp.py): the padded MLP computes
+the unpadded one's function, values and gradients, its padding never trains, and a
+checkpoint of the unpadded MLP loads into it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fastenerf.fields.mlp import ALIGN, ColorMLP, mlp
+
+
+def _pair(geo: int, hidden: int = 64):
+    """(padded, unpadded) colour MLPs drawn from the same generator state, in float64."""
+    torch.manual_seed(7)
+    padded = ColorMLP(geo, hidden).double()
+    torch.manual_seed(7)
+    plain = mlp(geo + 16, hidden, 3, 2).double()
+    return padded, plain
+
+
+def _inputs(n: int, geo: int, seed: int = 0):
+    g = torch.Generator().manual_seed(seed)
+    h = torch.randn(n, 1 + geo, generator=g, dtype=torch.float64, requires_grad=True)
+    sh = torch.randn(n, 16, generator=g, dtype=torch.float64, requires_grad=True)
+    return h, sh
+
+
+@pytest.mark.parametrize("geo", [15, 10, 7])  # 32 wide; 27 -> 32 with zero columns; 24
+def test_padded_colour_mlp_is_the_unpadded_function_and_gradient(geo):
+    padded, plain = _pair(geo)
+    assert padded[0].in_features % ALIGN == 0 and padded[4].out_features % ALIGN == 0
+    # the same initial weights where they act, zeros elsewhere
+    w0 = padded[0].weight
+    assert torch.equal(w0[:, 1 : 1 + geo + 16], plain[0].weight)
+    assert not w0[:, 0].any() and not w0[:, 1 + geo + 16 :].any()
+    assert torch.equal(padded[4].weight[:3], plain[4].weight) and not padded[4].weight[3:].any()
+
+    h, sh = _inputs(33, geo)
+    y = padded(h, sh)
+    ref = plain(torch.cat([h[:, 1:], sh], 1))
+    assert y.shape == (33, 3)
+    torch.testing.assert_close(y, ref, rtol=1e-12, atol=1e-12)
+    g = torch.randn_like(ref)
+    gp = torch.autograd.grad(y, [h, sh, *padded.parameters()], g)
+    gr = torch.autograd.grad(ref, [h, sh, *plain.parameters()], g)
+    assert not gp[0][:, 0].any()  # the σ logit gets nothing from the colour
+    torch.testing.assert_close(gp[0][:, 1:], gr[0][:, 1:], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(gp[1], gr[1], rtol=1e-12, atol=1e-12)
+    dw0, dw2, dw4 = gp[2:]
+    torch.testing.assert_close(dw0[:, 1 : 1 + geo + 16], gr[2], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(dw2, gr[3], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(dw4[:3], gr[4], rtol=1e-12, atol=1e-12)
+    # the padding's gradients are exact zeros: Adam leaves those weights where they are
+    assert not dw0[:, 0].any() and not dw0[:, 1 + geo + 16 :].any() and not dw4[3:].any()
+
+
+@pytest.mark.parametrize("amp", [False, True])
+def test_adam_never_moves_the_padding(amp):
+    torch.manual_seed(0)
+    net = ColorMLP(10, 32)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-2, eps=1e-15)
+    for step in range(5):
+        h, sh = (t.float().detach() for t in _inputs(64, 10, seed=step))
+        with torch.autocast("cpu", torch.bfloat16, enabled=amp):
+            y = net(h, sh)
+        loss = (torch.sigmoid(y.float()) - 0.5).square().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert net[0].weight[:, 1:27].abs().sum() > 0  # it trained
+    assert not net[0].weight[:, 0].any() and not net[0].weight[:, 27:].any()
+    assert not net[4].weight[3:].any()
+
+
+def test_unpadded_checkpoint_loads_padded_through_a_parent_module():
+    padded, plain = _pair(15)
+    with torch.no_grad():
+        for p in plain.parameters():
+            p.add_(0.1 * torch.randn_like(p))  # not the weights `padded` starts with
+    old = torch.nn.ModuleDict({"color_net": plain}).state_dict()
+    assert old["color_net.0.weight"].shape == (64, 31)
+    assert old["color_net.4.weight"].shape == (3, 64)
+    holder = torch.nn.ModuleDict({"color_net": padded})
+    holder.load_state_dict(old)  # strict: every key taken, every shape made to fit
+    h, sh = _inputs(9, 15, seed=4)
+    ref = plain(torch.cat([h[:, 1:], sh], 1))
+    torch.testing.assert_close(padded(h, sh), ref, rtol=1e-12, atol=1e-12)
+    # and a padded checkpoint round-trips as it is
+    again = torch.nn.ModuleDict({"color_net": _pair(15)[0]})
+    again.load_state_dict(holder.state_dict())
+    assert torch.equal(again["color_net"](h, sh), padded(h, sh))
