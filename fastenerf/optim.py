@@ -25,7 +25,7 @@ trainer may set its `grad_scale` / `found_inf`).
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import torch
 
@@ -109,6 +109,23 @@ def lr_as_floats(optimizer: torch.optim.Optimizer) -> None:
             g["lr"] = float(g["lr"])
         if "capturable" in g:
             g["capturable"] = False
+
+
+def fit_state(optimizer: torch.optim.Optimizer, fit: Callable[[torch.Tensor], torch.Tensor]):
+    """Per-parameter state (Adam's moments) saved for a parameter of another shape made to its
+    parameter's shape by `fit` (a checkpoint of an older layout: `ColorMLP.pad_legacy`).
+    Raises ValueError where `fit` does not give the parameter's shape."""
+    for group in optimizer.param_groups:
+        for p in group["params"]:
+            state = optimizer.state.get(p, {})
+            for key, v in state.items():
+                if torch.is_tensor(v) and v.dim() == p.dim() and v.shape != p.shape:
+                    state[key] = fit(v)
+                    if state[key].shape != p.shape:
+                        raise ValueError(
+                            f"optimiser state {key} {tuple(v.shape)} does not fit a parameter "
+                            f"{tuple(p.shape)}"
+                        )
 
 
 class RowSparseAdam(torch.optim.Optimizer):

@@ -21,6 +21,7 @@ from .config import TrainConfig
 from .errors import InputError
 from .fields import canonical_field_config
 from .io import atomic_path
+from .optim import fit_state
 from .run import CHECKPOINT, CHECKPOINT_VERSION, METRICS_LOG, scene_fingerprint
 
 if TYPE_CHECKING:
@@ -154,6 +155,8 @@ def restore(tr: Trainer, ck: dict) -> None:
     try:
         tr.field.load_state_dict(ck["field"])
         tr.optimizer.load_state_dict(ck["optimizer"])
+        if hasattr(tr.field, "pad_legacy"):  # moments saved for an older layout of the field
+            fit_state(tr.optimizer, tr.field.pad_legacy)
         if tr.selfcal is not None:
             tr.selfcal.load_state_dict(ck["self_calibration"])
         saved = ck["sampler"]

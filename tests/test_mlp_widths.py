@@ -4,10 +4,16 @@ checkpoint of the unpadded MLP loads into it."""
 
 from __future__ import annotations
 
+import shutil
+
 import pytest
 import torch
 
+from fastenerf.data.formats.native import load_scene
 from fastenerf.fields.mlp import ALIGN, ColorMLP, mlp
+from fastenerf.run import CHECKPOINT
+from fastenerf.train import Trainer
+from tests.test_train import tiny_cfg
 
 
 def _pair(geo: int, hidden: int = 64):
@@ -90,3 +96,32 @@ def test_unpadded_checkpoint_loads_padded_through_a_parent_module():
     again = torch.nn.ModuleDict({"color_net": _pair(15)[0]})
     again.load_state_dict(holder.state_dict())
     assert torch.equal(again["color_net"](h, sh), padded(h, sh))
+
+
+def test_a_run_checkpointed_with_the_unpadded_mlp_resumes_as_if_padded(tiny_scene, tmp_path):
+    """A checkpoint whose colour MLP weights and Adam moments have the unpadded layout (a run
+    interrupted before the thirty-first session) resumes to the same steps as the padded one."""
+    scene = load_scene(tiny_scene)
+    first = Trainer(scene, tiny_cfg("ngp", steps=3), tmp_path / "new")
+    first.run(hooks=[], progress=False)
+    first.save_checkpoint(finished=True)
+    shutil.copytree(tmp_path / "new", tmp_path / "old")
+    path = tmp_path / "old" / CHECKPOINT
+    ck = torch.load(path, weights_only=False)
+    net = first.field.color_net
+    index = {id(p): i for i, p in enumerate(first.optimizer.param_groups[0]["params"])}
+    for layer, cut in ((net[0], lambda t: t[:, 1:32]), (net[4], lambda t: t[:3])):
+        key = "color_net.0.weight" if layer is net[0] else "color_net.4.weight"
+        ck["field"][key] = cut(ck["field"][key]).clone()
+        for name, v in ck["optimizer"]["state"][index[id(layer.weight)]].items():
+            if torch.is_tensor(v) and v.dim() == 2:
+                ck["optimizer"]["state"][index[id(layer.weight)]][name] = cut(v).clone()
+    assert ck["field"]["color_net.0.weight"].shape == (net[0].out_features, 31)
+    torch.save(ck, path)
+    runs = []
+    for name in ("new", "old"):
+        tr = Trainer(scene, tiny_cfg("ngp", steps=5), tmp_path / name, True)
+        tr.run(hooks=[], progress=False)
+        runs.append(dict(tr.field.named_parameters()))
+    for k, v in runs[0].items():
+        torch.testing.assert_close(runs[1][k], v, rtol=0, atol=0, msg=k)

@@ -80,6 +80,20 @@ class ColorMLP(nn.Sequential):
         """(3, hidden) output weights -> (aligned(3), hidden), zero rows behind."""
         return torch.cat([w, w.new_zeros(aligned(N_RGB) - N_RGB, w.shape[1])], 0)
 
+    def pad_legacy(self, t: torch.Tensor) -> torch.Tensor:
+        """`t` shaped as the unpadded MLP's first or last weight (a checkpoint's weight, or its
+        Adam moments) padded as this MLP's is; any other tensor as it is."""
+        if (
+            t.dim() == 2
+            and t.shape[1] == self.n_h - 1 + N_SH
+            and t.shape[0] == self[0].out_features
+        ):
+            return self._pad_in(t)
+        last = self[len(self) - 1]
+        if t.dim() == 2 and t.shape[0] == N_RGB and t.shape[1] == last.in_features:
+            return self._pad_out(t)
+        return t
+
     def forward(self, h: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
         parts = [h * self.h_mask.to(h.dtype), sh.to(h.dtype)]
         if self.n_pad:
@@ -88,11 +102,7 @@ class ColorMLP(nn.Sequential):
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # a checkpoint of the unpadded MLP (written before the thirty-first session)
-        first, last = f"{prefix}0.weight", f"{prefix}{len(self) - 1}.weight"
-        w = state_dict.get(first)
-        if w is not None and w.shape[1] == self.n_h - 1 + N_SH:
-            state_dict[first] = self._pad_in(w)
-        w = state_dict.get(last)
-        if w is not None and w.shape[0] == N_RGB:
-            state_dict[last] = self._pad_out(w)
+        for key in (f"{prefix}0.weight", f"{prefix}{len(self) - 1}.weight"):
+            if key in state_dict:
+                state_dict[key] = self.pad_legacy(state_dict[key])
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)

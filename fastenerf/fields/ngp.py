@@ -161,6 +161,12 @@ class NGPField(Field):
         self.grid.to(self.aabb.device)
         return self
 
+    def pad_legacy(self, t: torch.Tensor) -> torch.Tensor:
+        """A tensor saved for the colour MLP's unpadded layout (weights or their optimiser
+        state, checkpoints from before the thirty-first session) in the padded one
+        (`ColorMLP.pad_legacy`); any other tensor as it is."""
+        return self.color_net.pad_legacy(t)
+
     def grid_state_aabb(self) -> list[float]:
         return [float(v) for v in self.aabb.cpu()]
 
