@@ -8,7 +8,8 @@ The sampler, with its occupancy grid, is `OccupancySampler` (occupancy_sampler.p
 can compact the marched samples first (`early_stop_eps`): σ alone, without gradients, picks
 the samples still visible (kernels/prune.py); only those run the full field.
 Every heavy op is a Warp kernel from `fastenerf.kernels`; the MLPs are plain PyTorch
-(bf16 autocast on CUDA, set by the trainer). Only what the scene needs is built: the
+(bf16 autocast on CUDA, set by the trainer; the colour MLP's widths padded for cuBLAS:
+`fields/mlp.py`). Only what the scene needs is built: the
 cylinder clip exists only when the scene sets one (in the density and in the grid).
 """
 
