@@ -28,6 +28,10 @@ class HashGridConfig:
     """N_min, cells per axis of the coarsest level."""
     max_resolution: int = field(default=2048, metadata={"min": 1, "max": 1 << 20})
     """N_max, cells per axis of the finest level (2048 for a unit-sized box, DESIGN §4)."""
+    backward_run: int = field(default=1, metadata={"min": 1, "max": 64})
+    """Consecutive points per GPU thread in the table's backward: a ray's samples that share a
+    cell add their gradients in registers and reach the table in one reduction per corner (1:
+    a thread per point). The same sum either way, up to float rounding order."""
 
     def __post_init__(self):
         if self.n_levels < 1 or self.n_features not in (1, 2, 4, 8):
@@ -38,6 +42,8 @@ class HashGridConfig:
             raise ValueError(f"HashGridConfig: log2_table_size {self.log2_table_size} not in 1..30")
         if not 1 <= self.base_resolution <= self.max_resolution:
             raise ValueError("HashGridConfig: need 1 <= base_resolution <= max_resolution")
+        if self.backward_run < 1:
+            raise ValueError(f"HashGridConfig: backward_run {self.backward_run} < 1")
         if self.n_params * self.n_features >= 2**31:
             raise ValueError("HashGridConfig: table too large for int32 indexing")
 

@@ -28,7 +28,9 @@ forward+backward 2.0 ms, vs 23 ms for the same op in plain PyTorch):
   ``red.v4`` (2.4 ms without);
 - the backward takes levels 4 at a time with the level as the fastest index, so a row-major
   ``(N, L*F)`` gradient (what a Linear layer's backward gives) is read in whole 32-byte sectors,
-  in place with its strides, no transposing copy (2.3 ms ungrouped).
+  in place with its strides, no transposing copy (2.3 ms ungrouped);
+- with ``HashGridConfig.backward_run`` R > 1 the table's backward takes R consecutive points
+  per thread and sends one reduction per corner per cell they share (`hashgrid_runs.py`).
 Host cost per op is ~60 µs (cached Warp views, recorded launches, cached streams).
 """
 
@@ -42,59 +44,18 @@ import warp as wp
 
 from .common import as_float32, device_of, fast_view, init, launch
 from .gridconfig import HashGridConfig
+from .hashgrid_cells import cell_of, corner_weight, grid_index
+from .hashgrid_runs import run_backward
 from .rows import tracker_of
 from .vector_memory import gather_pair, scatter_func, scatter_pair
 
 init()
 
 
-PRIME_Y = wp.constant(wp.uint32(2654435761))
-PRIME_Z = wp.constant(wp.uint32(805459861))
-
-
 def init_table(cfg: HashGridConfig, device="cpu", generator: torch.Generator | None = None):
     """Fresh parameters: (n_params, F) float32, uniform in [-1e-4, 1e-4]."""
     t = torch.empty(cfg.n_params, cfg.n_features, dtype=torch.float32, device=device)
     return t.uniform_(-1e-4, 1e-4, generator=generator)
-
-
-# ---------------------------------------------------------------------------------------------
-# Warp functions shared by every kernel variant
-
-
-@wp.func
-def grid_index(ix: int, iy: int, iz: int, level: wp.vec4i) -> int:
-    """Row of vertex (ix, iy, iz) relative to the level's offset.
-
-    level = (N, offset, hashed, mask): dense index, or the uint32 XOR hash masked to T rows.
-    """
-    if level[2] != 0:
-        h = wp.uint32(ix) ^ (wp.uint32(iy) * PRIME_Y) ^ (wp.uint32(iz) * PRIME_Z)
-        return int(h & wp.uint32(level[3]))
-    stride = level[0] + 1
-    return ix + stride * (iy + stride * iz)
-
-
-@wp.func
-def cell_of(p: wp.vec3, res: int):
-    """Clamp p to the box; return (cell index, fraction in [0, 1]) at resolution res."""
-    q = wp.vec3(wp.clamp(p[0], 0.0, 1.0), wp.clamp(p[1], 0.0, 1.0), wp.clamp(p[2], 0.0, 1.0))
-    pos = q * float(res)
-    c = wp.vec3i(
-        wp.clamp(int(wp.floor(pos[0])), 0, res - 1),
-        wp.clamp(int(wp.floor(pos[1])), 0, res - 1),
-        wp.clamp(int(wp.floor(pos[2])), 0, res - 1),
-    )
-    f = pos - wp.vec3(float(c[0]), float(c[1]), float(c[2]))
-    return c, f
-
-
-@wp.func
-def corner_weight(f: wp.vec3, dx: int, dy: int, dz: int) -> float:
-    wx = wp.where(dx != 0, f[0], 1.0 - f[0])
-    wy = wp.where(dy != 0, f[1], 1.0 - f[1])
-    wz = wp.where(dz != 0, f[2], 1.0 - f[2])
-    return wx * wy * wz
 
 
 @wp.kernel(enable_backward=False)
@@ -351,6 +312,7 @@ class _Variant:
     vector_red: bool = True
     pairs: bool = True
     group: int = 4
+    run: int = 0  # points per thread in the table's backward (`_run_backward`); 0: the cfg's
 
     def kernels(self, F: int):
         return _kernels(
@@ -461,12 +423,14 @@ class _HashGridEncode(torch.autograd.Function):
         grad_x = grad_table = None
         if ctx.needs_input_grad[1]:
             grad_table = torch.zeros_like(table)
+            run = variant.run or cfg.backward_run
             if n and ctx.tracker is not None:
                 _launch_tracked(x, g_wp, cfg, grad_table, ctx.tracker)
             elif n:
+                by_runs = run > 1 and variant.level_outer
                 launch(
-                    bwd_table,
-                    variant.backward_threads(n, L),
+                    run_backward(F, run) if by_runs else bwd_table,
+                    -(-n // run) * (-(-L // 4) * 4) if by_runs else variant.backward_threads(n, L),
                     x,
                     [
                         fast_view(x, wp.vec3),

@@ -313,6 +313,24 @@ def test_mlp_widths_times_the_padded_colour_mlp_beside_the_unpadded_on_cpu(tmp_p
     assert not (tmp_path / "x.json").exists()
 
 
+def test_hashgrid_runs_times_each_run_length_beside_one_point_per_thread(tmp_path, capsys):
+    from benchmarks import hashgrid_runs
+
+    out = tmp_path / "r.json"
+    argv = ["--device", "cpu", "--runs", "1", "4", "--rays", "8", "--per-ray", "16"]
+    assert hashgrid_runs.main(argv + ["--repeats", "1", "--json", str(out)]) == 0
+    res = json.loads(out.read_text())
+    assert res["n_points"] == 128 and set(res["sets"]) == {"ray_order", "uniform"}
+    for rows in res["sets"].values():
+        assert [r["run"] for r in rows] == [1, 4] and rows[0]["speedup_vs_first"] == 1.0
+        assert rows[1]["bwd_ms"] > 0 and rows[1]["max_rel_diff"] < 1e-5  # the same sum
+    assert "| ray_order | 4 |" in capsys.readouterr().out
+    assert (
+        hashgrid_runs.main(["--device", "cpu", "--runs", "0", "--json", str(tmp_path / "x")]) == 2
+    )
+    assert not (tmp_path / "x").exists()
+
+
 def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):
     from benchmarks import profile_step as ps
 

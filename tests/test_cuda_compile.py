@@ -18,7 +18,14 @@ import warp as wp
 
 import fastenerf.kernels as kernels_pkg
 from fastenerf.fields.ngp import NGPField
-from fastenerf.kernels import composite, composite_block, hashgrid, occupancy, raymarch
+from fastenerf.kernels import (
+    composite,
+    composite_block,
+    hashgrid,
+    hashgrid_runs,
+    occupancy,
+    raymarch,
+)
 
 ARCH = 90  # H100 / H200
 
@@ -30,7 +37,7 @@ def training_kernels() -> list:
     for info in pkgutil.iter_modules(kernels_pkg.__path__):
         mod = importlib.import_module(f"fastenerf.kernels.{info.name}")
         out += [v for v in vars(mod).values() if isinstance(v, wp.Kernel)]
-    out += [*hashgrid._kernels(2), hashgrid._tracked_backward(2)]
+    out += [*hashgrid._kernels(2), hashgrid._tracked_backward(2), hashgrid_runs.run_backward(2, 4)]
     for flags in itertools.product((False, True), repeat=4):
         out += [composite._composite_bwd_kernel(*flags)]
         out += [composite_block.composite_bwd_block_kernel(*flags)]
