@@ -248,14 +248,15 @@ def bench_event_query(
     return r
 
 
-VARIANTS = [
+VARIANTS = [  # the default (runs of points in the table's backward), then a thread per point
     _Variant(),
-    _Variant(group=1),
-    _Variant(group=2),
-    _Variant(pairs=False),
-    _Variant(pairs=False, vector_red=False),
-    _Variant(feature_major=False),
-    _Variant(level_outer=False),
+    _Variant(run=1),
+    _Variant(group=1, run=1),
+    _Variant(group=2, run=1),
+    _Variant(pairs=False, run=1),
+    _Variant(pairs=False, vector_red=False, run=1),
+    _Variant(feature_major=False, run=1),
+    _Variant(level_outer=False, run=1),
 ]
 
 

@@ -61,7 +61,8 @@ STAGES = (
 KERNEL_KINDS = (
     ("march", r"march|ray_aabb"),
     # hashgrid.py builds its kernels in `_kernels()`: Warp names them _kernels__locals__NAME
-    ("hash grid", r"hash|grid_index|_kernels__locals__(forward|backward)|_run_backward"),
+    # (hashgrid_runs.py: run_backward__locals__backward_table_runs)
+    ("hash grid", r"hash|grid_index|_kernels__locals__(forward|backward)|backward_table"),
     ("spherical harmonics", r"(^|_)sh_|spherical"),
     ("composite", r"composite|distortion"),
     ("occupancy grid", r"occup|lookup|bitfield|mark_unseen|grid_update|_cells"),

@@ -28,10 +28,11 @@ class HashGridConfig:
     """N_min, cells per axis of the coarsest level."""
     max_resolution: int = field(default=2048, metadata={"min": 1, "max": 1 << 20})
     """N_max, cells per axis of the finest level (2048 for a unit-sized box, DESIGN §4)."""
-    backward_run: int = field(default=1, metadata={"min": 1, "max": 64})
-    """Consecutive points per GPU thread in the table's backward: a ray's samples that share a
-    cell add their gradients in registers and reach the table in one reduction per corner (1:
-    a thread per point). The same sum either way, up to float rounding order."""
+    backward_run: int = field(default=16, metadata={"min": 1, "max": 64})
+    """Consecutive points per thread in the table's backward: a ray's samples that share a cell
+    add their gradients in registers and reach the table in one reduction per corner (1: a
+    thread per point). The same sum either way, up to float rounding order. The default was
+    measured on every built-in scene and a mesh scene (benchmarks/RESULTS.md, issue #17)."""
 
     def __post_init__(self):
         if self.n_levels < 1 or self.n_features not in (1, 2, 4, 8):

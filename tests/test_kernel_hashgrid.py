@@ -130,9 +130,10 @@ TINY_TABLE = HashGridConfig(
     [
         (SMALL, _Variant()),  # 6 levels: the last 4-level backward group is partial
         (TINY_TABLE, _Variant()),
-        (SMALL, _Variant(group=1, pairs=False)),
+        (SMALL, _Variant(run=1)),  # a thread per point in the table's backward
+        (SMALL, _Variant(group=1, pairs=False, run=1)),
     ],
-    ids=["small", "tiny_table_everything_collides", "ungrouped_unpaired"],
+    ids=["small", "tiny_table_everything_collides", "thread_per_point", "ungrouped_unpaired"],
 )
 def test_forward_backward_vs_reference(cfg, variant):
     gen = torch.Generator().manual_seed(int(torch.randint(0, 2**31, ())))
