@@ -49,7 +49,10 @@ class MarcherOptions:
     constant steps (slower, sharper), 1/256 instant-ngp's (faster). Default: chosen by the
     training budget (0 for a run with a step or time budget, 1/256 for an open-ended one)."""
     dt_min: float | None = field(default=None, metadata={"gt": 0.0, "max": 10.0})
-    """Smallest marching step, world units. None: √3/1024 · box size."""
+    """Smallest marching step, world units. None: √3 · box size / diagonal_steps."""
+    diagonal_steps: int = field(default=1024, metadata={"min": 1, "max": 1_000_000})
+    """With dt_min unset, the smallest step is √3 · the box's longest side / this (instant-ngp's
+    1024): the same step on every scene relative to its box; fewer, fewer samples per ray."""
     max_samples: int = field(default=1024, metadata={"min": 1, "max": 65536})
     """Most samples along one ray."""
     early_cone_angle: float | None = field(default=1.0 / 64, metadata={"min": 0.0, "max": 1.0})

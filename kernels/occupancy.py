@@ -41,10 +41,11 @@ _empty = torch.empty
 # Zero-copy descriptors (not wp.array objects): a third of the per-launch Python cost.
 
 
-def default_step_size(aabb) -> float:
-    """Minimal marching step (instant-ngp's √3/1024 per box extent): √3 · max side / 1024."""
+def default_step_size(aabb, diagonal_steps: int = 1024) -> float:
+    """Minimal marching step (instant-ngp's √3/1024 per box extent): √3 · max side /
+    diagonal_steps, world units."""
     a = [float(v) for v in aabb]
-    return math.sqrt(3.0) * max(a[3] - a[0], a[4] - a[1], a[5] - a[2]) / 1024.0
+    return math.sqrt(3.0) * max(a[3] - a[0], a[4] - a[1], a[5] - a[2]) / diagonal_steps
 
 
 # ---------------------------------------------------------------- shared Warp functions

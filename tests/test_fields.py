@@ -523,6 +523,28 @@ def test_ngp_early_cone_marches_fewer_samples_until_early_steps(make):
     assert defaults.marcher.early_cone_angle == 1 / 64 and defaults.marcher.early_steps == 256
 
 
+def test_ngp_diagonal_steps_sets_the_step_relative_to_the_box(make):
+    """`diagonal_steps` (dt_min unset): half of them, twice the step, half the samples per ray
+    through a fog that fills the box; the occupancy threshold's step follows; a dt_min given
+    wins over it."""
+    o, d = hit_rays(16)
+
+    def field_and_samples(**options):
+        # few steps across the [-1, 1]^3 box (SMALL's dt_min unset): CPU time, max_samples
+        opts = dict(cone_angle=0.0, early_cone_angle=None, dt_min=None) | options
+        f = make("ngp", **opts)
+        return f, int(f.render(o, d, near=1e-4, background=BG, train=False)["n_samples"])
+
+    f128, n128 = field_and_samples(diagonal_steps=128)
+    f64, n64 = field_and_samples(diagonal_steps=64)
+    assert f128.sampler.grid.step_size == pytest.approx(math.sqrt(3) * 2 / 128)
+    assert f64.sampler.grid.step_size == pytest.approx(2 * f128.sampler.grid.step_size)
+    assert n64 == pytest.approx(n128 / 2, rel=0.05), (n64, n128)
+    fixed, _ = field_and_samples(diagonal_steps=64, dt_min=0.005)
+    assert fixed.sampler.grid.step_size == 0.005
+    assert parse_options("ngp", {}).marcher.diagonal_steps == 1024
+
+
 def test_view_cone_is_a_floor_for_this_threads_inference_renders_only(make):
     """`view_cone` (the viewer's speed setting): inference renders in this thread march with at
     least that cone (fewer samples), training renders and other threads keep the field's own,

@@ -18,7 +18,7 @@ import torch
 
 from ..backends import NGPOptions
 from ..config import CylinderConfig
-from ..kernels.occupancy import OccupancyGrid
+from ..kernels.occupancy import OccupancyGrid, default_step_size
 from ..kernels.prune import prune_samples, prune_samples_fixed
 from ..kernels.ray_points import ray_points
 from ..kernels.raymarch import march_rays
@@ -70,7 +70,8 @@ class OccupancySampler:
             options.occupancy.grid_resolution,
             1,
             cylinder=cyl,
-            step_size=options.marcher.dt_min,
+            step_size=options.marcher.dt_min
+            or default_step_size(aabb, options.marcher.diagonal_steps),
             device=device,
         )
         self.compaction = None  # compaction_auto's switch (None: fixed by the options)
