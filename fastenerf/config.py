@@ -294,7 +294,7 @@ class TrainConfig:
         if c.distortion_weight is None:
             c.distortion_weight = 0.0 if real else 1e-4
         if cpu_ngp:  # the CPU preset fills the options left unset (fastenerf.cpu_preset)
-            c.backend_options = ngp_cpu_options(c.backend_options, scene.aabb, scene.cylinder)
+            c.backend_options = ngp_cpu_options(c.backend_options)
         if c.rays_per_step is None:
             # ~256k samples per step on a GPU (DESIGN §4); a 2-core CPU needs small batches.
             c.rays_per_step = 8192 if str(device).startswith("cuda") else 512

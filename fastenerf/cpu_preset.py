@@ -12,7 +12,6 @@ so it is recorded in the run's config.json; GPU runs never see it.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 from .backends import get_option, set_option
@@ -25,30 +24,18 @@ NGP_CPU_OPTIONS: dict[str, Any] = {
     "max_resolution": 256,
     "grid_resolution": 32,
     "hidden": 32,
+    # the smallest step √3 · the field's box side / 64 (the GPU's default: / 1024)
+    "diagonal_steps": 64,
 }
-# dt_min = √3 · the box's longest side / NGP_CPU_DIAGONAL_STEPS (the GPU's default: / 1024).
-NGP_CPU_DIAGONAL_STEPS = 64
 # Pixels per step (each rendered at the window's start and end).
 NGP_CPU_RAYS = 256
 
 
-def cpu_dt_min(aabb, cylinder=None) -> float:
-    """The CPU preset's smallest marching step for a scene box (world units).
-
-    aabb: [xmin, ymin, zmin, xmax, ymax, zmax]; cylinder: a CylinderConfig (the ngp field's
-    box is the box shrunk to it) or None.
-    """
-    box = [float(v) for v in aabb] if cylinder is None else cylinder.clip_box(aabb)
-    side = max(box[i + 3] - box[i] for i in range(3))
-    return math.sqrt(3.0) * side / NGP_CPU_DIAGONAL_STEPS
-
-
-def ngp_cpu_options(options: dict | None, aabb, cylinder=None) -> dict:
+def ngp_cpu_options(options: dict | None) -> dict:
     """`options` (ngp backend options, flat or nested) with every preset key it leaves unset
-    filled in (dt_min from the scene's box)."""
+    filled in."""
     out = dict(options or {})
-    preset = {**NGP_CPU_OPTIONS, "dt_min": cpu_dt_min(aabb, cylinder)}
-    for key, value in preset.items():
+    for key, value in NGP_CPU_OPTIONS.items():
         if get_option("ngp", out, key) is None:
             out = set_option("ngp", out, key, value)
     return out

@@ -15,12 +15,7 @@ from fastenerf.config import (
     TrajectoryConfig,
     train_preset,
 )
-from fastenerf.cpu_preset import (
-    NGP_CPU_DIAGONAL_STEPS,
-    NGP_CPU_OPTIONS,
-    NGP_CPU_RAYS,
-    cpu_dt_min,
-)
+from fastenerf.cpu_preset import NGP_CPU_OPTIONS, NGP_CPU_RAYS
 from fastenerf.errors import InputError
 
 
@@ -40,9 +35,7 @@ def test_cpu_fills_unset_ngp_options_and_rays():
     c = train_preset("fast", "ngp").resolved(scene(), "cpu")
     for key, value in NGP_CPU_OPTIONS.items():
         assert get_option("ngp", c.backend_options, key) == value
-    assert get_option("ngp", c.backend_options, "dt_min") == pytest.approx(
-        math.sqrt(3) * 2.0 / NGP_CPU_DIAGONAL_STEPS
-    )
+    assert get_option("ngp", c.backend_options, "dt_min") is None  # from the field's box
     assert c.rays_per_step == NGP_CPU_RAYS
     opts = parse_options("ngp", c.backend_options)  # valid options, as the field reads them
     assert opts.encoding.n_levels == NGP_CPU_OPTIONS["n_levels"]
@@ -122,14 +115,22 @@ def test_windows_that_lengthen_once_the_poses_settle_start_at_the_reference_leng
         train_preset("fast", "ngp", refine_poses=True, settle_win_max=100).validate()
 
 
-def test_dt_min_follows_the_clipped_box():
-    cyl = CylinderConfig(0.25, -0.35, 0.15)
-    assert cpu_dt_min([-1, -1, -1, 1, 1, 1], cyl) == pytest.approx(
-        math.sqrt(3) * 0.5 / NGP_CPU_DIAGONAL_STEPS
-    )
-    assert cpu_dt_min([-1, -1, -1, 1, 1, 1]) == pytest.approx(
-        math.sqrt(3) * 2 / NGP_CPU_DIAGONAL_STEPS
-    )
+def test_the_cpu_step_follows_the_fields_clipped_box():
+    """√3 · the field's box side / 64 (`diagonal_steps`): the box shrunk to the clip
+    cylinder where the scene has one; a dt_min the user gives wins."""
+    from fastenerf.fields import make_field
+
+    def step(cylinder=None, **options) -> float:
+        cfg = train_preset("fast", "ngp", backend_options=options).resolved(scene(cylinder), "cpu")
+        return make_field("ngp", scene(cylinder), cfg).sampler.grid.step_size
+
+    steps = NGP_CPU_OPTIONS["diagonal_steps"]
+    assert steps == 64
+    assert step() == pytest.approx(math.sqrt(3) * 2.0 / steps)  # the box's longest side: 2
+    cyl = CylinderConfig(0.25, -0.35, 0.15)  # clips the box to 0.5 x 0.5 x 0.5
+    assert step(cyl) == pytest.approx(math.sqrt(3) * 0.5 / steps)
+    assert step(dt_min=0.01) == 0.01
+    assert step(diagonal_steps=32) == pytest.approx(math.sqrt(3) * 2.0 / 32)
 
 
 def test_baton_gives_turns_in_a_ring():
