@@ -425,6 +425,18 @@ def _dummy(dev: torch.device, dtype: torch.dtype, width: int = 1) -> torch.Tenso
     return _dummy_cached(torch.device(dev), dtype, width)
 
 
+@wp.kernel(enable_backward=False)
+def _cap_segments(counts: wp.array(dtype=wp.int32), n_seg: int, max_samples: int):
+    """One thread per ray: its segments' counts capped in place so that they add up to at most
+    max_samples, the nearest segments first (segment j keeps what the earlier ones left)."""
+    r = wp.tid()
+    left = max_samples
+    for j in range(n_seg):
+        take = wp.min(counts[r * n_seg + j], left)
+        counts[r * n_seg + j] = take
+        left = left - take
+
+
 def count_samples(p: MarchPlan) -> torch.Tensor:
     """Samples of each (ray, segment), (R * n_seg,) int32, the per-ray cap applied."""
     dev = p.like.device
@@ -434,11 +446,11 @@ def count_samples(p: MarchPlan) -> torch.Tensor:
     launch(
         p.kernel, p.R * p.n_seg, p.like, [*p.head, 0, counts, fast_view(si0, wp.vec2i), f0, f0, i0]
     )
-    if p.n_seg == 1:
-        return counts
-    # the cap keeps each ray's nearest samples: segment j gets what is left of it
-    incl = torch.cumsum(counts.view(p.R, p.n_seg), 1, dtype=torch.int32).clamp_(max=p.max_samples)
-    return torch.diff(incl, dim=1, prepend=torch.zeros_like(incl[:, :1])).view(-1)
+    if p.n_seg > 1:
+        # the cap keeps each ray's nearest samples; one kernel, where a row-wise cumsum, clamp
+        # and diff took five (the cumsum alone 0.1 ms of an H200 step at 8,192 rays x 4)
+        launch(_cap_segments, p.R, p.like, [counts, p.n_seg, p.max_samples])
+    return counts
 
 
 def write_samples(p: MarchPlan, seg_info, t_starts, t_ends, ray_indices) -> None:
