@@ -6,6 +6,8 @@ a training step takes them) under bf16 autocast, as training runs them on a GPU,
   through `mlp(G + 16, hidden, 3, 2)`: the colour MLP before the thirty-first session;
 - ``padded``: `ColorMLP(G, hidden)` on the density MLP's whole output (1 + G) and SH, the
   same initial weights where they act;
+- ``padded_cat``: the same MLP fed as before the thirty-second session: the σ logit's input
+  column multiplied by 0 and torch.cat (``padded`` masks the weights and concatenates words);
 - ``density``: the density MLP (32 -> hidden -> 1 + G), aligned either way, for scale.
 Medians in ms (CUDA events, after warm-up; wall clock on the CPU); `max_diff` is the largest
 difference of a variant's colour logits from the unpadded one's. Needs no Warp, so it runs on
@@ -49,9 +51,19 @@ def _variants(n: int, geo: int, hidden: int, device: str) -> dict:
     def unpadded():
         return plain(torch.cat([h[:, 1:], sh.to(h.dtype)], 1))
 
+    h_mask = torch.ones(1 + geo, device=device)
+    h_mask[0] = 0.0
+
+    def padded_cat():
+        x = [h * h_mask.to(h.dtype), sh.to(h.dtype)]
+        if padded.n_pad:
+            x.append(h.new_zeros(()).expand(n, padded.n_pad))
+        return torch.nn.Sequential.forward(padded, torch.cat(x, 1))[:, :3]
+
     return {
         "unpadded": (unpadded, list(plain.parameters()), [h, sh]),
         "padded": (lambda: padded(h, sh), list(padded.parameters()), [h, sh]),
+        "padded_cat": (padded_cat, list(padded.parameters()), [h, sh]),
         "density": (lambda: density(feats), list(density.parameters()), [feats]),
     }
 

@@ -305,9 +305,10 @@ def test_mlp_widths_times_the_padded_colour_mlp_beside_the_unpadded_on_cpu(tmp_p
     argv = ["--device", "cpu", "--n", "256", "--geo", "10", "--repeats", "1"]
     assert mlp_widths.main(argv + ["--out", str(out)]) == 0
     rows = {r["variant"]: r for r in json.loads(out.read_text())}
-    assert set(rows) == {"unpadded", "padded", "density"}
+    assert set(rows) == {"unpadded", "padded", "padded_cat", "density"}
     assert rows["unpadded"]["speedup_fwdbwd"] == 1.0 and rows["padded"]["fwdbwd_ms"] > 0
     assert rows["padded"]["max_diff"] < 1e-2  # the same function (bf16 rounding at most)
+    assert rows["padded_cat"]["max_diff"] < 1e-2  # and so is the old way of feeding it
     assert "| " not in capsys.readouterr().out  # a plain table on stdout
     assert mlp_widths.main(["--device", "cpu", "--n", "0", "--out", str(tmp_path / "x.json")]) == 2
     assert not (tmp_path / "x.json").exists()

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from fastenerf.data.formats.native import load_scene
-from fastenerf.fields.mlp import ALIGN, ColorMLP, mlp
+from fastenerf.fields.mlp import ALIGN, ColorMLP, _as_words, _word_for, concat_rows, mlp
 from fastenerf.run import CHECKPOINT
 from fastenerf.train import Trainer
 from tests.test_train import tiny_cfg
@@ -125,3 +125,42 @@ def test_a_run_checkpointed_with_the_unpadded_mlp_resumes_as_if_padded(tiny_scen
         runs.append(dict(tr.field.named_parameters()))
     for k, v in runs[0].items():
         torch.testing.assert_close(runs[1][k], v, rtol=0, atol=0, msg=k)
+
+
+@pytest.mark.parametrize(
+    "dtype,widths,word",
+    [
+        (torch.bfloat16, (16, 16), torch.int64),  # the colour MLP's input under autocast
+        (torch.float32, (16, 16), torch.int64),  # ... and on a CPU
+        (torch.float64, (3, 5), torch.int64),
+        (torch.bfloat16, (3, 1), torch.int16),  # odd widths: 2-byte words
+        (torch.float32, (3, 2), torch.int32),  # one word for all parts: no promotion
+    ],
+)
+def test_concat_rows_is_torch_cat_copied_as_words(dtype, widths, word):
+    g = torch.Generator().manual_seed(3)
+    parts = [torch.randn(37, w, generator=g).to(dtype).requires_grad_(True) for w in widths]
+    assert _word_for(parts) == word  # the word path is taken
+    assert all(_as_words(p.detach(), word) is not None for p in parts)
+    out, ref = concat_rows(parts), torch.cat(parts, 1)
+    assert out.dtype == dtype and torch.equal(out, ref)
+    cot = torch.randn(ref.shape, generator=g).to(dtype)
+    got = torch.autograd.grad(out, parts, cot)
+    want = torch.autograd.grad(ref, parts, cot)
+    assert all(torch.equal(a, b) for a, b in zip(got, want, strict=True))
+
+
+def test_concat_rows_falls_back_to_torch_cat_where_words_do_not_fit():
+    base = torch.randn(8, 6)
+    strided = base[:, ::2]  # not contiguous
+    zeros = base.new_zeros(()).expand(8, 3)  # the colour MLP's padding columns
+    offset = torch.randn(8 * 6 + 1)[1:].view(8, 6)  # rows of 24 bytes starting 4 bytes in
+    for parts in ([strided, base], [base, zeros], [offset, offset], [base, base.double()]):
+        parts = [p.clone() if p.dtype == torch.float64 else p for p in parts]
+        if len({p.dtype for p in parts}) == 1:
+            assert torch.equal(concat_rows(parts), torch.cat(parts, 1))
+        else:  # mixed dtypes: torch.cat's own promotion
+            assert torch.equal(concat_rows(parts), torch.cat(parts, 1))
+    assert _as_words(strided, torch.int32) is None and _as_words(zeros, torch.int32) is None
+    assert _word_for([offset, offset]) == torch.int64 and _as_words(offset, torch.int64) is None
+    assert _word_for([base, base.double()]) is None
