@@ -23,8 +23,10 @@ def run_backward(F: int, run: int):
 
     A ray's samples are consecutive and, at the coarse levels, several fall in one cell: the
     thread adds their corner gradients in registers and sends one reduction per corner when
-    the cell changes (or the run ends), instead of one per sample. Same thread layout as the
-    default backward (levels 4 at a time, the level fastest), over ceil(N / run) items.
+    the cell changes (or the run ends), instead of one per sample. The thread layout of the
+    thread-per-point backward (`hashgrid._kernels`: levels 4 at a time, the level fastest),
+    over ceil(N / run) items. Arguments as that kernel's: x (N, 3) in [0, 1]^3, grad (N, L*F)
+    with any strides, grad_table (n_params,) F-vectors, added into.
     """
     vec = wp.types.vector(length=F, dtype=wp.float32)
     corners = wp.types.matrix(shape=(8, F), dtype=wp.float32)
