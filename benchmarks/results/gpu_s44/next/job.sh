@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# The next lease's job, as ../next_gpu.txt proposes (lists 0, 1 and 4), started detached once
+# Warp is staged (copy this folder to .gpu-job; start.sh beside it does the rest):
+#   setsid nohup bash /var/tmp/after/.gpu-job/job.sh > /dev/null 2>&1 &
+# 0. `benchmarks.mlp_widths` (padded against padded_cat) and `profile_step` on toyset and plant
+#    from the BEFORE tree (29e5ae3: the segment cap and the colour input before c35496d and
+#    85e6ee1) and from this tree, one scene after the other;
+# 1. list1.txt: #20's cost at 0 degrees split (plant, blocks);
+# 4. list4.txt: diagonal_steps 768 and 512 on every scene.
+# Everything lands in RES/s45 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
+# scenes, BUDGET_S and WARMUP set, and the paths below: a CPU dry run.
+set -u
+HERE=$(cd "$(dirname "$0")" && pwd)
+AFTER=${AFTER:-/var/tmp/after}; BEFORE=${BEFORE:-/var/tmp/before}; DATA=${DATA:-/var/tmp/data}
+RES=${RES:-/var/tmp/res}/s45
+DEVICE=${DEVICE:-cuda}; export DEVICE
+mkdir -p "$RES"
+[ -f /var/tmp/gpu-warp/activate.sh ] && source /var/tmp/gpu-warp/activate.sh
+OUT=$RES source "$AFTER/benchmarks/gpu_env.sh"  # links, PYTHONPATH, $PY; cd to the tree
+note() { echo "[$(date +%T)] $*" >> "$RES/progress.log"; }
+ready() { local n=0; while [ ! -e "$DATA/$1.ready" ] && [ $n -lt 450 ]; do sleep 2; n=$((n + 1)); done; }
+note "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)"
+$PY -m benchmarks.mlp_widths --n "${MLP_N:-1900000}" --device "$DEVICE" --out "$RES/mlp_widths.json" \
+    > "$RES/mlp_widths.log" 2>&1
+note "mlp_widths rc $?"
+for s in toyset plant; do
+    ready $s
+    for t in before after; do
+        tree=$AFTER; [ $t = before ] && tree=$BEFORE
+        [ -e "$tree/fastenerf/kernels" ] || ln -s ../kernels "$tree/fastenerf/kernels"
+        (cd "$tree" && PYTHONPATH=$tree $PY -m benchmarks.profile_step --scene "$DATA/$s" \
+            --device "$DEVICE" --warmup "${WARMUP:-1000}" --steps 50 --quiet \
+            --out "$RES/prof_${s}_$t") > "$RES/prof_${s}_$t.log" 2>&1
+        note "profile $s $t rc $?"
+    done
+done
+for list in list1 list4; do
+    WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/$list" "$HERE/$list.txt" \
+        "$(cat "$HERE/COMMIT" 2>/dev/null)"
+    note "$list done"
+done
+touch "$RES/all.done"
