@@ -14,6 +14,8 @@ from fastenerf.outputs import OutputKind, claim_output
 # A benchmark's --out folder: written into (its own files replaced one by one), never
 # replaced whole, so any folder is one; a file there, or an unwritable place, is refused.
 BENCH_FOLDER = OutputKind("benchmark output folder", True, lambda p: True, replaced_whole=False)
+# A benchmark's results as one JSON file (`--out` / `--json` FILE.json).
+JSON_FILE = OutputKind("JSON file", False, lambda p: p.suffix.lower() == ".json")
 
 
 def benchmark_main(

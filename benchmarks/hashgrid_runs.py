@@ -14,15 +14,17 @@ relative to its largest entry (float rounding order only).
 from __future__ import annotations
 
 import argparse
-import json
 import math
-import sys
 
 import torch
 
+from benchmarks.cli import JSON_FILE, benchmark_main
 from benchmarks.timing import time_ms
+from fastenerf.errors import require
+from fastenerf.io import write_json
 from fastenerf.kernels.gridconfig import HashGridConfig
 from fastenerf.kernels.hashgrid import _Variant, hash_grid_encode, init_table
+from fastenerf.outputs import claim_output
 
 
 def ray_ordered_points(n_rays: int, per_ray: int, step: float, gen: torch.Generator, device):
@@ -63,18 +65,21 @@ def time_runs(x: torch.Tensor, runs: list[int], repeats: int, log2_T: int = 19) 
     return rows
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--runs", type=int, nargs="+", default=[1, 2, 4, 8, 16])
-    ap.add_argument("--rays", type=int, default=None, help="rays (default 8192; CPU 64)")
-    ap.add_argument("--per-ray", type=int, default=128, help="samples per ray")
-    ap.add_argument("--repeats", type=int, default=None)
-    ap.add_argument("--json", default=None, help="write the results here")
-    a = ap.parse_args(argv)
-    if any(r < 1 for r in a.runs) or a.per_ray < 1 or (a.rays or 1) < 1:
-        print("hashgrid_runs: error: --runs, --rays and --per-ray are >= 1", file=sys.stderr)
-        return 2
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--runs", type=int, nargs="+", default=[1, 2, 4, 8, 16])
+    p.add_argument("--rays", type=int, default=None, help="rays (default 8192; CPU 64)")
+    p.add_argument("--per-ray", type=int, default=128, help="samples per ray")
+    p.add_argument("--repeats", type=int, default=None, help="timed batches (default 30; CPU 3)")
+    p.add_argument("--json", default=None, help="write the results here (a .json file)")
+
+
+def run(a: argparse.Namespace) -> int:
+    for name, values in (("runs", a.runs), ("rays", [a.rays]), ("per-ray", [a.per_ray])):
+        bad = [v for v in values if v is not None and v < 1]
+        require(not bad, f"--{name} must be at least 1, got {bad[0] if bad else None}")
+    if a.json:
+        claim_output(a.json, JSON_FILE, force=None)
     small = a.device == "cpu"
     n_rays = a.rays or (64 if small else 8192)
     repeats = a.repeats or (3 if small else 30)
@@ -89,17 +94,19 @@ def main(argv=None) -> int:
     print(f"hash grid backward(table), {res['n_points']:,} points, {name}")
     print("| points | run | ms | vs first | max rel diff |\n|---|---:|---:|---:|---:|")
     for key, x in sets.items():
-        rows = time_runs(x, a.runs, repeats)
-        res["sets"][key] = rows
-        for r in rows:
+        res["sets"][key] = time_runs(x, a.runs, repeats)
+        for r in res["sets"][key]:
             print(
                 f"| {key} | {r['run']} | {r['bwd_ms']:.3f} | {r['speedup_vs_first']:.2f}x | "
                 f"{r['max_rel_diff']:.1e} |"
             )
     if a.json:
-        with open(a.json, "w") as f:
-            json.dump(res, f, indent=1)
+        write_json(a.json, res)
     return 0
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    return benchmark_main("hashgrid_runs", __doc__, add_arguments, run, argv, prog)
 
 
 if __name__ == "__main__":

@@ -27,15 +27,14 @@ import time
 
 import torch
 
-from benchmarks.cli import benchmark_main
+from benchmarks.cli import JSON_FILE, benchmark_main
 from benchmarks.timing import time_ms
 from fastenerf.errors import require
 from fastenerf.fields.ngp import _mlp
 from fastenerf.io import write_json
 from fastenerf.kernels.mlp import DEFAULT_BLOCK_DIM, DEFAULT_TILE, fused_mlp
-from fastenerf.outputs import OutputKind, claim_output
+from fastenerf.outputs import claim_output
 
-JSON_FILE = OutputKind("JSON file", False, lambda p: p.suffix.lower() == ".json")
 SHAPES = {"density": (32, 64, 16, 1), "color": (31, 64, 3, 2)}  # n_in, hidden, n_out, hidden layers
 
 

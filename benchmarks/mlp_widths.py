@@ -25,14 +25,12 @@ import argparse
 
 import torch
 
-from benchmarks.cli import benchmark_main
+from benchmarks.cli import JSON_FILE, benchmark_main
 from benchmarks.timing import time_ms
 from fastenerf.errors import require
 from fastenerf.fields.mlp import ColorMLP, mlp
 from fastenerf.io import write_json
-from fastenerf.outputs import OutputKind, claim_output
-
-JSON_FILE = OutputKind("JSON file", False, lambda p: p.suffix.lower() == ".json")
+from fastenerf.outputs import claim_output
 
 
 def _variants(n: int, geo: int, hidden: int, device: str) -> dict:

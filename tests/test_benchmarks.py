@@ -326,10 +326,18 @@ def test_hashgrid_runs_times_each_run_length_beside_one_point_per_thread(tmp_pat
         assert [r["run"] for r in rows] == [1, 4] and rows[0]["speedup_vs_first"] == 1.0
         assert rows[1]["bwd_ms"] > 0 and rows[1]["max_rel_diff"] < 1e-5  # the same sum
     assert "| ray_order | 4 |" in capsys.readouterr().out
-    assert (
-        hashgrid_runs.main(["--device", "cpu", "--runs", "0", "--json", str(tmp_path / "x")]) == 2
-    )
-    assert not (tmp_path / "x").exists()
+    capsys.readouterr()
+    bad = tmp_path / "x.json"
+    assert hashgrid_runs.main(["--device", "cpu", "--runs", "0", "--json", str(bad)]) == 2
+    assert not bad.exists()
+    # an output that is no JSON file, or a folder, is refused before any work, untouched
+    other = tmp_path / "notes.txt"
+    other.write_text("mine")
+    for out in (other, tmp_path):
+        assert hashgrid_runs.main(["--device", "cpu", "--rays", "2", "--json", str(out)]) == 2
+    assert other.read_text() == "mine"
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all(e.startswith("hashgrid_runs: error:") for e in err)
 
 
 def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):
