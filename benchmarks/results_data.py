@@ -25,14 +25,11 @@ import io
 import os
 import sys
 import tarfile
-import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent / "results"
 ARCHIVE = "data.tar.xz"
 SUFFIXES = (".json", ".jsonl", ".log")
-_UMASK = os.umask(0)
-os.umask(_UMASK)
 
 
 class DataError(Exception):
@@ -70,14 +67,14 @@ def read_archive(archive: Path) -> dict[str, bytes]:
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    """data to path through a new file beside it (open's mode and umask) and a rename."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with os.fdopen(fd, "wb") as f:
+        with open(tmp, "xb") as f:
             f.write(data)
-        os.chmod(tmp, 0o666 & ~_UMASK)  # as open() would make it, not mkstemp's 0600
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
 
 
@@ -161,6 +158,9 @@ def main(argv=None) -> int:
                     print(f / name)
     except DataError as e:
         print(f"results_data: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a folder that cannot be written, a path that is no file, ...
+        print(f"results_data: error: {e.filename or ''}: {e.strerror or e}", file=sys.stderr)
         return 2
     return 0
 

@@ -103,3 +103,17 @@ def test_the_repositorys_archives_read_and_stay_small():
         assert a.stat().st_size < 2 * 2**20, a  # the house's 2 MiB rule per data file
         members = rd.read_archive(a)
         assert members and all(Path(n).suffix in rd.SUFFIXES for n in members), a
+
+
+def test_a_write_that_fails_is_one_line_and_leaves_what_was_there(tmp_path, capsys):
+    f = make_folder(tmp_path)
+    rd.pack(f)
+    before = (f / rd.ARCHIVE).read_bytes()
+    p = f / "job.log"
+    p.unlink()
+    p.mkdir()  # a folder where the archive has a file: the unpack cannot write it
+    assert rd.main(["unpack", str(f)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("results_data: error:") and "\n" not in err and "job.log" in err
+    assert p.is_dir() and not any(p.iterdir()) and (f / rd.ARCHIVE).read_bytes() == before
+    assert not list(f.rglob("*.tmp"))  # no temporary file left behind
