@@ -44,7 +44,7 @@ import warp as wp
 
 from .common import as_float32, device_of, fast_view, init, launch
 from .gridconfig import HashGridConfig
-from .hashgrid_cells import cell_of, corner_weight, grid_index
+from .hashgrid_cells import cell_of, corner_weight, grid_index, grouped, pair_rows
 from .hashgrid_runs import run_backward
 from .rows import tracker_of
 from .vector_memory import gather_pair, scatter_func, scatter_pair
@@ -106,11 +106,7 @@ def _kernels(
     @wp.func
     def split_grouped(tid: int, n: int, n_levels: int):
         if wp.static(level_outer and group > 1):
-            gsize = n * group
-            gi = tid // gsize
-            r = tid - gi * gsize
-            i = r // group
-            return gi * group + (r - i * group), i
+            return grouped(tid, n, group)
         return split(tid, n, n_levels)
 
     @wp.func
@@ -146,11 +142,8 @@ def _kernels(
         c, f = cell_of(x[i], level[0])
         acc = vec()
         for k in range(4):
-            dy = k & 1
-            dz = k >> 1
-            r0 = level[1] + grid_index(c[0], c[1] + dy, c[2] + dz, level)
-            r1 = level[1] + grid_index(c[0] + 1, c[1] + dy, c[2] + dz, level)
-            w = weights_yz(f, dy, dz)
+            r0, r1 = pair_rows(c, k, level)
+            w = weights_yz(f, k & 1, k >> 1)
             if wp.static(pairs):
                 q = gather_pair(table, r0, r1)
                 acc += (w * (1.0 - f[0])) * vec(q[0], q[1]) + (w * f[0]) * vec(q[2], q[3])
@@ -178,11 +171,8 @@ def _kernels(
             return
         c, f = cell_of(x[i], level[0])
         for k in range(4):
-            dy = k & 1
-            dz = k >> 1
-            r0 = level[1] + grid_index(c[0], c[1] + dy, c[2] + dz, level)
-            r1 = level[1] + grid_index(c[0] + 1, c[1] + dy, c[2] + dz, level)
-            w = weights_yz(f, dy, dz)
+            r0, r1 = pair_rows(c, k, level)
+            w = weights_yz(f, k & 1, k >> 1)
             g0 = (w * (1.0 - f[0])) * g
             g1 = (w * f[0]) * g
             if wp.static(pairs and vector_red):

@@ -30,6 +30,17 @@ def grid_index(ix: int, iy: int, iz: int, level: wp.vec4i) -> int:
 
 
 @wp.func
+def pair_rows(c: wp.vec3i, m: int, level: wp.vec4i):
+    """Absolute rows of the x-adjacent corner pair m of cell c: (c + (0, dy, dz), c + (1, dy,
+    dz)) with dy = m & 1, dz = m >> 1 (m in 0..3; the pair a 16-byte access may serve)."""
+    dy = m & 1
+    dz = m >> 1
+    r0 = level[1] + grid_index(c[0], c[1] + dy, c[2] + dz, level)
+    r1 = level[1] + grid_index(c[0] + 1, c[1] + dy, c[2] + dz, level)
+    return r0, r1
+
+
+@wp.func
 def cell_of(p: wp.vec3, res: int):
     """Clamp p to the box; return (cell index, fraction in [0, 1]) at resolution res."""
     q = wp.vec3(wp.clamp(p[0], 0.0, 1.0), wp.clamp(p[1], 0.0, 1.0), wp.clamp(p[2], 0.0, 1.0))

@@ -11,7 +11,7 @@ import functools
 import warp as wp
 
 from .common import init
-from .hashgrid_cells import cell_of, corner_weight, grid_index, grouped
+from .hashgrid_cells import cell_of, corner_weight, grouped, pair_rows
 from .vector_memory import scatter_func, scatter_pair
 
 init()
@@ -36,10 +36,7 @@ def run_backward(F: int, run: int):
     @wp.func
     def flush(grad_table: wp.array(dtype=vec), level: wp.vec4i, c: wp.vec3i, acc: corners):
         for m in range(4):
-            dy = m & 1
-            dz = m >> 1
-            r0 = level[1] + grid_index(c[0], c[1] + dy, c[2] + dz, level)
-            r1 = level[1] + grid_index(c[0] + 1, c[1] + dy, c[2] + dz, level)
+            r0, r1 = pair_rows(c, m, level)
             if wp.static(pairs):
                 a = acc[2 * m]
                 b = acc[2 * m + 1]
