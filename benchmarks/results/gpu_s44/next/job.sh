@@ -1,7 +1,6 @@
 #!/usr/bin/env bash
 # The next lease's job, as ../next_gpu.txt proposes (lists 0, 1 and 4), started detached once
-# Warp is staged (copy this folder to .gpu-job; start.sh beside it does the rest):
-#   setsid nohup bash /var/tmp/after/.gpu-job/job.sh > /dev/null 2>&1 &
+# Warp is staged (copy this folder to .gpu-job; `bash benchmarks/gpu_start.sh s45` starts it)
 # 0. `benchmarks.mlp_widths` (padded against padded_cat) and `profile_step` on toyset and plant
 #    from the BEFORE tree (29e5ae3: the segment cap and the colour input before c35496d and
 #    85e6ee1) and from this tree, one scene after the other;
@@ -13,13 +12,7 @@ set -u
 HERE=$(cd "$(dirname "$0")" && pwd)
 AFTER=${AFTER:-/var/tmp/after}; BEFORE=${BEFORE:-/var/tmp/before}; DATA=${DATA:-/var/tmp/data}
 RES=${RES:-/var/tmp/res}/s45
-DEVICE=${DEVICE:-cuda}; export DEVICE
-mkdir -p "$RES"
-[ -f /var/tmp/gpu-warp/activate.sh ] && source /var/tmp/gpu-warp/activate.sh
-OUT=$RES source "$AFTER/benchmarks/gpu_env.sh"  # links, PYTHONPATH, $PY; cd to the tree
-note() { echo "[$(date +%T)] $*" >> "$RES/progress.log"; }
-ready() { local n=0; while [ ! -e "$DATA/$1.ready" ] && [ $n -lt 450 ]; do sleep 2; n=$((n + 1)); done; }
-note "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)"
+source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, $PY, DEVICE; cd to the tree
 $PY -m benchmarks.mlp_widths --n "${MLP_N:-1900000}" --device "$DEVICE" --out "$RES/mlp_widths.json" \
     > "$RES/mlp_widths.log" 2>&1
 note "mlp_widths rc $?"

@@ -1,0 +1,15 @@
+# Sourced first by a lease's job.sh (`.gpu-job/job.sh`, started by gpu_start.sh) once it has
+# set RES (its results folder), AFTER (the tree's copy) and DATA (the scenes):
+#   RES=${RES:-/var/tmp/res}/NAME; AFTER=...; DATA=...; source "$AFTER/benchmarks/gpu_job_env.sh"
+# Makes RES, activates the staged Warp where there is one, sources gpu_env.sh (the links,
+# PYTHONPATH, $PY; the working folder becomes the tree) and gives the job
+#   note TEXT      a timestamped line in RES/progress.log (what gpu_poll.sh prints)
+#   ready SCENE    waits up to 900 s for DATA/SCENE.ready (a later call copies the scene in)
+# DEVICE (cuda unless set) is exported for the job's commands.
+mkdir -p "$RES"
+[ -f /var/tmp/gpu-warp/activate.sh ] && source /var/tmp/gpu-warp/activate.sh
+OUT=$RES source "$AFTER/benchmarks/gpu_env.sh"
+DEVICE=${DEVICE:-cuda}; export DEVICE
+note() { echo "[$(date +%T)] $*" >> "$RES/progress.log"; }
+ready() { local n=0; while [ ! -e "$DATA/$1.ready" ] && [ $n -lt 450 ]; do sleep 2; n=$((n + 1)); done; }
+note "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)"
