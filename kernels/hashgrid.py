@@ -45,7 +45,7 @@ import warp as wp
 from .common import as_float32, device_of, fast_view, init, launch
 from .gridconfig import HashGridConfig
 from .hashgrid_cells import cell_of, corner_weight, grid_index, grouped, pair_rows
-from .hashgrid_runs import run_backward
+from .hashgrid_runs import run_backward, run_threads
 from .rows import tracker_of
 from .vector_memory import gather_pair, scatter_func, scatter_pair
 
@@ -302,7 +302,7 @@ class _Variant:
     vector_red: bool = True
     pairs: bool = True
     group: int = 4
-    run: int = 0  # points per thread in the table's backward (`_run_backward`); 0: the cfg's
+    run: int = 0  # points per thread in the table's backward (`run_backward`); 0: the cfg's
 
     def kernels(self, F: int):
         return _kernels(
@@ -420,7 +420,7 @@ class _HashGridEncode(torch.autograd.Function):
                 by_runs = run > 1 and variant.level_outer
                 launch(
                     run_backward(F, run) if by_runs else bwd_table,
-                    -(-n // run) * (-(-L // 4) * 4) if by_runs else variant.backward_threads(n, L),
+                    run_threads(n, L, run) if by_runs else variant.backward_threads(n, L),
                     x,
                     [
                         fast_view(x, wp.vec3),

@@ -17,6 +17,15 @@ from .vector_memory import scatter_func, scatter_pair
 init()
 
 
+GROUP = 4  # levels a thread group takes, the level the fastest index (as `hashgrid._kernels`)
+
+
+def run_threads(n: int, n_levels: int, run: int) -> int:
+    """Threads `run_backward` launches for n points: ceil(n / run) items per level, the
+    levels rounded up to whole groups."""
+    return -(-n // run) * (-(-n_levels // GROUP) * GROUP)
+
+
 @functools.cache
 def run_backward(F: int, run: int):
     """backward(table) over runs of `run` consecutive points per (level, thread).
@@ -55,7 +64,7 @@ def run_backward(F: int, run: int):
         grad_table: wp.array(dtype=vec),
     ):
         n_items = (n + run - 1) // run
-        lv, item = grouped(wp.tid(), n_items, 4)
+        lv, item = grouped(wp.tid(), n_items, GROUP)
         if lv >= n_levels:
             return
         level = levels[lv]

@@ -48,7 +48,7 @@ def mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int) -> nn.Sequenti
     return nn.Sequential(*layers)
 
 
-_WORDS = (torch.int64, torch.int32, torch.int16)
+_WORDS = ((torch.int64, 8), (torch.int32, 4), (torch.int16, 2))  # (dtype, bytes), widest first
 
 
 def _word_for(parts: list[torch.Tensor]) -> torch.dtype | None:
@@ -57,8 +57,7 @@ def _word_for(parts: list[torch.Tensor]) -> torch.dtype | None:
     size = parts[0].element_size()
     if any(p.dim() != 2 or p.dtype != parts[0].dtype for p in parts):
         return None
-    for word in _WORDS:
-        w = torch.empty((), dtype=word).element_size()
+    for word, w in _WORDS:
         if w >= size and all(p.shape[1] * size % w == 0 for p in parts):
             return word
     return None
@@ -155,9 +154,9 @@ class ColorMLP(nn.Sequential):
         parts = [h, sh.to(h.dtype)]
         if self.n_pad:
             parts.append(h.new_zeros(()).expand(h.shape[0], self.n_pad))
-        first = self[0]
-        y = F.linear(concat_rows(parts), first.weight * self.w_mask)
-        for layer in list(self)[1:]:
+        layers = iter(self)
+        y = F.linear(concat_rows(parts), next(layers).weight * self.w_mask)
+        for layer in layers:
             y = layer(y)
         return y[:, :N_RGB]
 
