@@ -41,9 +41,11 @@ def _variants(n: int, geo: int, hidden: int, device: str) -> dict:
     plain = mlp(geo + 16, hidden, 3, 2).to(device)
     density = mlp(32, hidden, 1 + geo, 1).to(device)
     gen = torch.Generator().manual_seed(1)
-    # h as the density MLP hands it over under autocast (bf16), SH as its kernel (float32)
+    # h as the density MLP hands it over under autocast (bf16), SH as its kernel does: float32,
+    # the (N, 16) view of (16, N) storage (kernels/sh.py)
     h = torch.randn(n, 1 + geo, generator=gen).to(device, torch.bfloat16).requires_grad_(True)
-    sh = torch.randn(n, 16, generator=gen).to(device).requires_grad_(True)
+    sh_storage = torch.randn(16, n, generator=gen).to(device).requires_grad_(True)
+    sh = sh_storage.t()
     feats = torch.randn(n, 32, generator=gen).to(device).requires_grad_(True)
 
     def unpadded():
@@ -59,9 +61,9 @@ def _variants(n: int, geo: int, hidden: int, device: str) -> dict:
         return torch.nn.Sequential.forward(padded, torch.cat(x, 1))[:, :3]
 
     return {
-        "unpadded": (unpadded, list(plain.parameters()), [h, sh]),
-        "padded": (lambda: padded(h, sh), list(padded.parameters()), [h, sh]),
-        "padded_cat": (padded_cat, list(padded.parameters()), [h, sh]),
+        "unpadded": (unpadded, list(plain.parameters()), [h, sh_storage]),
+        "padded": (lambda: padded(h, sh), list(padded.parameters()), [h, sh_storage]),
+        "padded_cat": (padded_cat, list(padded.parameters()), [h, sh_storage]),
         "density": (lambda: density(feats), list(density.parameters()), [feats]),
     }
 

@@ -164,3 +164,40 @@ def test_concat_rows_falls_back_to_torch_cat_where_words_do_not_fit():
     assert _as_words(strided, torch.int32) is None and _as_words(zeros, torch.int32) is None
     assert _word_for([offset, offset]) == torch.int64 and _as_words(offset, torch.int64) is None
     assert _word_for([base, base.double()]) is None
+
+
+def _cat_dtypes(fn) -> list[torch.dtype]:
+    """The dtypes of every aten.cat `fn` dispatches (its forward and backward)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    seen = []
+
+    class Spy(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func is torch.ops.aten.cat.default:
+                seen.append(args[0][0].dtype)
+            return func(*args, **(kwargs or {}))
+
+    with Spy():
+        fn()
+    return seen
+
+
+def test_the_colour_mlp_concatenates_the_fields_own_sh_as_words():
+    """The field's SH come as a transposed view (kernels/sh.py); the bf16 input the colour MLP
+    builds from them must still take the word copy (torch's 2-byte cat is the slow one)."""
+    from kernels.sh import sh_encode
+
+    torch.manual_seed(0)
+    net = ColorMLP(15, 64).to(torch.bfloat16)
+    d = torch.nn.functional.normalize(torch.randn(300, 3), dim=1)
+    sh = sh_encode(d)
+    assert not sh.is_contiguous()  # the layout this test is about
+    h = torch.randn(300, 16).to(torch.bfloat16).requires_grad_(True)
+
+    def step():
+        net(h, sh).float().square().sum().backward()
+
+    assert _cat_dtypes(step) == [torch.int64]
+    want = net(h, sh.contiguous())
+    assert torch.equal(net(h, sh), want)

@@ -151,7 +151,9 @@ class ColorMLP(nn.Sequential):
         return t
 
     def forward(self, h: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
-        parts = [h, sh.to(h.dtype)]
+        # sh_encode hands over a transposed (16, N) storage; the cast writes rows, so that the
+        # concatenation below can move them as words
+        parts = [h, sh.to(h.dtype, memory_format=torch.contiguous_format)]
         if self.n_pad:
             parts.append(h.new_zeros(()).expand(h.shape[0], self.n_pad))
         layers = iter(self)
