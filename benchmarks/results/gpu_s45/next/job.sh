@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# The next lease's job (../next_gpu.txt), started detached once Warp is staged (copy this
+# folder to .gpu-job, COMMIT set; `bash benchmarks/gpu_start.sh s46` starts it):
+# 0. `benchmarks.mlp_widths` (SH in the kernel's layout now) and `profile_step` on toyset and
+#    plant from the BEFORE tree (4328e9b: the colour input still on torch's 2-byte cat) and
+#    from this tree (0e1cf8a or later), one scene after the other;
+# 1. runs.txt: 64 windows per step against 16 (shiny; second seeds elsewhere), then the
+#    refined run at 0 degrees beside a plain run on its own 64-window batch.
+# Everything lands in RES/s46 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
+# scenes, BUDGET_S and WARMUP set, and the paths below: a CPU dry run.
+set -u
+HERE=$(cd "$(dirname "$0")" && pwd)
+AFTER=${AFTER:-/var/tmp/after}; BEFORE=${BEFORE:-/var/tmp/before}; DATA=${DATA:-/var/tmp/data}
+RES=${RES:-/var/tmp/res}/s46
+source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, $PY, DEVICE; cd to the tree
+$PY -m benchmarks.mlp_widths --n "${MLP_N:-1900000}" --device "$DEVICE" --out "$RES/mlp_widths.json" \
+    > "$RES/mlp_widths.log" 2>&1
+note "mlp_widths rc $?"
+for s in toyset plant; do
+    ready $s
+    for t in before after; do
+        tree=$AFTER; [ $t = before ] && tree=$BEFORE
+        [ -e "$tree/fastenerf/kernels" ] || ln -s ../kernels "$tree/fastenerf/kernels"
+        (cd "$tree" && PYTHONPATH=$tree${PYTHONPATH:+:$PYTHONPATH} $PY -m benchmarks.profile_step --scene "$DATA/$s" \
+            --device "$DEVICE" --warmup "${WARMUP:-1000}" --steps 50 --quiet \
+            --out "$RES/prof_${s}_$t") > "$RES/prof_${s}_$t.log" 2>&1
+        note "profile $s $t rc $?"
+    done
+done
+WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" \
+    "$(cat "$HERE/COMMIT" 2>/dev/null)"
+note "runs done"
+touch "$RES/all.done"
