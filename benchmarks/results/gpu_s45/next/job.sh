@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The next lease's job (../next_gpu.txt), started detached once Warp is staged (copy this
 # folder to .gpu-job, COMMIT set; `bash benchmarks/gpu_start.sh s46` starts it):
-# 0. `benchmarks.mlp_widths` (SH in the kernel's layout now) and `profile_step` on toyset and
+# 0. `benchmarks.mlp_widths` (SH in the kernel's layout now), `benchmarks.kernels_render`
+#    (march and composite against PyTorch), and `profile_step` on toyset and
 #    plant from the BEFORE tree (4328e9b: the colour input still on torch's 2-byte cat) and
 #    from this tree (0e1cf8a or later), one scene after the other;
 # 1. runs.txt: 64 windows per step against 16 (shiny; second seeds elsewhere), then the
@@ -16,6 +17,10 @@ source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, $PY, DEVICE; cd to the
 $PY -m benchmarks.mlp_widths --n "${MLP_N:-1900000}" --device "$DEVICE" --out "$RES/mlp_widths.json" \
     > "$RES/mlp_widths.log" 2>&1
 note "mlp_widths rc $?"
+# #17's march and composite ratios against plain PyTorch since the march's cap became one kernel
+$PY -m benchmarks.kernels_render --device "$DEVICE" --repeats "${KR_REPEATS:-20}" \
+    > "$RES/kernels_render.json" 2> "$RES/kernels_render.log"
+note "kernels_render rc $?"
 for s in toyset plant; do
     ready $s
     for t in before after; do
