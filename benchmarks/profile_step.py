@@ -14,7 +14,8 @@ occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plain
   launched it (Warp kernels by their Python names, cuBLAS GEMMs as "mlp", the fused Adam as
   "optimizer", the remaining PyTorch element-wise and reduction kernels as "torch other"),
   and the device's busy share of the wall time (kernel time / wall; low means the step waits on
-  the host: launches, Python, a sync);
+  the host: launches, Python, a sync); every "torch other" kernel by name with its launches
+  per step (`other_kernels`: what no kind claims is where a fusion is still to be had);
 - CPU only: the ops with the most self CPU time (Warp kernels appear as their autograd
   functions, e.g. _HashGridEncodeBackward).
 `--variant` trains one of benchmarks.cpu_preset's variants instead of the preset's defaults
@@ -71,6 +72,9 @@ KERNEL_KINDS = (
     ("optimizer", r"adam|multi_tensor|foreach"),
 )
 
+
+# "torch other" kernels the Markdown lists (the JSON has them all).
+OTHER_ROWS = 20
 
 # Steps watched with torch's sync debug mode after the profile (it warns at every host sync).
 SYNC_CHECK_STEPS = 32
@@ -205,36 +209,55 @@ def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> di
     """Per-step host stages, device kernel time by kind and the device's busy share."""
     steps = len(wall)
     host = dict.fromkeys(STAGES, 0.0)
-    kinds: dict[str, float] = {}
-    top: dict[str, float] = {}
     for ev in prof.key_averages():
         if ev.key in host:
             host[ev.key] += ev.cpu_time_total / 1e3  # inclusive, ms over all steps
+    kernels = []
     if dev.type == "cuda":
         for ev in prof.events():
             if getattr(ev, "device_type", None) != torch.autograd.DeviceType.CUDA:
                 continue
-            if _is_annotation(ev):
-                continue
-            us = _device_time_us(ev)
-            if not us:
-                continue
-            kinds[kernel_kind(ev.name)] = kinds.get(kernel_kind(ev.name), 0.0) + us / 1e3
-            top[ev.name] = top.get(ev.name, 0.0) + us / 1e3
+            if not _is_annotation(ev) and (us := _device_time_us(ev)):
+                kernels.append((ev.name, us / 1e3))
+    tally = tally_kernels(kernels, steps)
     wall_ms = 1e3 * sum(wall) / steps
-    device_ms = sum(kinds.values()) / steps
+    device_ms = sum(tally["device_ms"].values())
     return {
         "steps": steps,
         "wall_ms_unprofiled": plain_ms,
         "wall_ms": wall_ms,
         "host_ms": {k: v / steps for k, v in host.items()},
-        "device_ms": {k: v / steps for k, v in sorted(kinds.items(), key=lambda kv: -kv[1])},
+        **tally,
         "device_busy_ms": device_ms if dev.type == "cuda" else None,
         "device_busy_share": device_ms / wall_ms if dev.type == "cuda" else None,
-        "top_kernels_ms": {
-            k[:120]: v / steps for k, v in sorted(top.items(), key=lambda kv: -kv[1])[:15]
-        },
         "top_cpu_ops_ms": {} if dev.type == "cuda" else _top_cpu_ops(prof, steps),
+    }
+
+
+def tally_kernels(kernels: list[tuple[str, float]], steps: int, top: int = 15) -> dict[str, dict]:
+    """Per-step device time of profiled kernel launches `kernels` ((name, ms) each) over
+    `steps` steps: `device_ms` by kind (KERNEL_KINDS), `top_kernels_ms` (the `top` largest
+    by name) and `other_kernels` (every "torch other" kernel: ms and launches per step, the
+    ones no kind claims, where the next fusion is found)."""
+    kinds: dict[str, float] = {}
+    by_name: dict[str, float] = {}
+    other: dict[str, list[float]] = {}
+    for name, ms in kernels:
+        kind = kernel_kind(name)
+        kinds[kind] = kinds.get(kind, 0.0) + ms
+        by_name[name] = by_name.get(name, 0.0) + ms
+        if kind == "torch other":
+            row = other.setdefault(name[:120], [0.0, 0.0])
+            row[0] += ms
+            row[1] += 1
+    largest = sorted(by_name.items(), key=lambda kv: -kv[1])
+    return {
+        "device_ms": {k: v / steps for k, v in sorted(kinds.items(), key=lambda kv: -kv[1])},
+        "top_kernels_ms": {k[:120]: v / steps for k, v in largest[:top]},
+        "other_kernels": {
+            k: {"ms": ms / steps, "launches": n / steps}
+            for k, (ms, n) in sorted(other.items(), key=lambda kv: -kv[1][0])
+        },
     }
 
 
@@ -290,6 +313,11 @@ def markdown(res: dict) -> str:
         tot = sum(res["device_ms"].values()) or 1.0
         for k, v in res["device_ms"].items():
             lines.append(f"| {k} | {v:.3f} | {100 * v / tot:.0f} % |")
+    if res.get("other_kernels"):
+        lines += ["", '| "torch other" kernel | ms/step | launches/step |', "|---|---:|---:|"]
+        for k, v in list(res["other_kernels"].items())[:OTHER_ROWS]:
+            name = k.replace("|", "\\|")
+            lines.append(f"| `{name}` | {v['ms']:.3f} | {v['launches']:.1f} |")
     if res.get("captures"):
         c = res["captures"]
         lines += [

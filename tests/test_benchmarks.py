@@ -340,6 +340,59 @@ def test_hashgrid_runs_times_each_run_length_beside_one_point_per_thread(tmp_pat
     assert len(err) == 3 and all(e.startswith("hashgrid_runs: error:") for e in err)
 
 
+def test_profile_step_lists_every_kernel_no_kind_claims():
+    """`tally_kernels` on launches named as the H200 profiles name them (gpu_s45): kinds sum
+    to the device time, and every "torch other" kernel is listed with its launches per step,
+    largest first, in the JSON and (to OTHER_ROWS) in the Markdown."""
+    from benchmarks import profile_step as ps
+
+    cat = "void at::native::(anonymous namespace)::CatArrayBatchedCopy<OpaqueType<2u>, |4>"
+    scan = "void at::native::tensor_kernel_scan_innermost_dim<int, std::plus<int> >"
+    launches = [
+        ("run_backward__locals__backward_table_runs_f5aba31e_cuda_kernel_forward", 0.8),
+        ("nvjet_sm90_tst_64x384_64x3_1x2_h_bz_coopB_NNT", 0.25),
+        (cat, 0.15),
+        (scan, 0.05),
+        (scan, 0.05),
+        ("_march_kernel__locals__march_b1a3b49c_cuda_kernel_forward", 0.45),
+    ] * 2  # two steps
+    t = ps.tally_kernels(launches, steps=2, top=3)
+    assert sum(t["device_ms"].values()) == pytest.approx(1.75)
+    assert t["device_ms"]["torch other"] == pytest.approx(0.25)
+    assert list(t["top_kernels_ms"]) == [launches[0][0], launches[5][0], launches[1][0]]
+    assert list(t["other_kernels"]) == [cat, scan]
+    assert t["other_kernels"][scan] == {"ms": pytest.approx(0.1), "launches": 2.0}
+    assert t["other_kernels"][cat]["launches"] == 1.0
+    assert ps.tally_kernels([], steps=3) == {
+        "device_ms": {},
+        "top_kernels_ms": {},
+        "other_kernels": {},
+    }
+    res = {
+        "session": {"machine": {"name": "H200", "cpu_numbers": False}},
+        "scene": "s",
+        "backend": "ngp",
+        "preset": "fast",
+        "warmup": 1,
+        "steps": 2,
+        "rays_per_step": 8,
+        "samples_per_step": 10.0,
+        "samples_per_ray": None,
+        "marched_per_ray": None,
+        "trained_slots": None,
+        "wall_ms_unprofiled": 2.0,
+        "wall_ms": 2.0,
+        "device_busy_ms": 1.75,
+        "device_busy_share": 0.875,
+        "host_ms": dict.fromkeys(ps.STAGES, 0.1),
+        **t,
+    }
+    md = ps.markdown(res)
+    rows = [ln for ln in md.splitlines() if ln.startswith("| `")]
+    assert len(rows) == 2 and rows[0].endswith("| 0.150 | 1.0 |") and "2u>, \\|4>" in rows[0]
+    assert rows[1].endswith("| 0.100 | 2.0 |")
+
+
 def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):
     from benchmarks import profile_step as ps
 
