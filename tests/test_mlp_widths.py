@@ -201,3 +201,11 @@ def test_the_colour_mlp_concatenates_the_fields_own_sh_as_words():
     assert _cat_dtypes(step) == [torch.int64]
     want = net(h, sh.contiguous())
     assert torch.equal(net(h, sh), want)
+    # the gradient reaches the directions through the kernel's layout as through rows
+    d.requires_grad_(True)
+    grads = []
+    for layout in (lambda t: t, torch.Tensor.contiguous):
+        (g,) = torch.autograd.grad(net(h, layout(sh_encode(d))).float().sum(), d)
+        grads.append(g)
+    assert torch.isfinite(grads[0]).all() and grads[0].abs().sum() > 0
+    assert torch.equal(grads[0], grads[1])
