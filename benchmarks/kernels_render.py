@@ -348,6 +348,8 @@ def bench_march_composite(
     pw = wmarch()
     r.update(_bench_march_fixed(margs, pw, field, device, repeats))
     r["speedup_march_fixed"] = r["torch_march_ms"] / r["warp_march_fixed_ms"]
+    r.update(_bench_march_single(margs, pw, device, repeats))
+    r["speedup_march_single"] = r["torch_march_ms"] / r["warp_march_single_ms"]
     r["speedup_pipeline_fixed"] = r["torch_pipeline_ms"] / r["warp_pipeline_fixed_ms"]
 
     # sample sets vs the float64 dense reference (same intervals: counts must agree)
@@ -391,6 +393,51 @@ def _bench_march_cellwise(margs, grid, exact, device, repeats) -> dict:
     r["warp_march_cellwise_ms"] = _time_ms(lambda: march_rays(*cargs), device, repeats)
     out = march_rays(*cargs)
     r["march_cellwise_matches"] = all(torch.equal(x, y) for x, y in zip(out, exact, strict=True))
+    return r
+
+
+def _bench_march_single(margs, exact, device, repeats) -> dict:
+    """The single pass (`single_pass=True`: march once into scratch rows, then copy) against
+    the two passes, side by side: at the benchmark's rays (exact and fixed buffers, the fixed
+    one also replayed from a CUDA graph) and at a quarter of them (training's 2 x 8,192 rays
+    at the default split into segments); whether the samples are the two passes' own."""
+    S = int(exact[0][:, 1].sum())
+    capacity = S + S // 4 + 1
+    buf = empty_fixed_samples(margs[0].shape[0], capacity, margs[0].device)
+    quarter = (margs[0][: len(margs[0]) // 4], margs[1][: len(margs[1]) // 4], *margs[2:])
+    r = {}
+    for key, single in (("two", False), ("single", True)):
+        r[f"warp_march_{key}_ms"] = _time_ms(
+            lambda single=single: march_rays(*margs, single_pass=single), device, repeats
+        )
+
+        def fixed(single=single):
+            return march_rays_fixed(*margs, single_pass=single, capacity=capacity, out=buf)
+
+        r[f"warp_march_fixed_{key}_ms"] = _time_ms(fixed, device, repeats)
+        if str(device).startswith("cuda"):
+            try:
+                graph, _ = _captured(fixed)
+                r[f"warp_march_fixed_{key}_graph_ms"] = _time_ms(graph.replay, device, repeats)
+            except Exception as e:  # report, do not hide the other timings
+                r[f"march_fixed_{key}_graph_error"] = f"{type(e).__name__}: {e}".splitlines()[0]
+        r[f"warp_march_quarter_{key}_ms"] = _time_ms(
+            lambda single=single: march_rays(*quarter, single_pass=single), device, repeats
+        )
+    one = march_rays(*margs, single_pass=True)
+    f = march_rays_fixed(*margs, single_pass=True, capacity=capacity, out=buf)
+    r["march_single_matches"] = bool(
+        all(torch.equal(x, y) for x, y in zip(one, exact, strict=True))
+        and int(f.n_used) == S
+        and torch.equal(f.packed_info, exact[0])
+        and torch.equal(f.t_starts[:S], exact[1])
+        and torch.equal(f.t_ends[:S], exact[2])
+        and torch.equal(f.ray_indices[:S], exact[3])
+    )
+    r["single_over_two"] = r["warp_march_two_ms"] / r["warp_march_single_ms"]
+    r["single_over_two_quarter"] = (
+        r["warp_march_quarter_two_ms"] / r["warp_march_quarter_single_ms"]
+    )
     return r
 
 

@@ -55,6 +55,10 @@ class MarcherOptions:
     1024): the same step on every scene relative to its box; fewer, fewer samples per ray."""
     max_samples: int = field(default=1024, metadata={"min": 1, "max": 65536})
     """Most samples along one ray."""
+    single_pass: bool = False
+    """March each ray once, keeping its samples in scratch rows while counting them, then
+    copy them into place (kernels/raymarch.py, `SINGLE_PASS`); False: march twice (count,
+    then write). The same samples either way."""
     early_cone_angle: float | None = field(default=1.0 / 64, metadata={"min": 0.0, "max": 1.0})
     """Cone angle of the first `early_steps` training steps, while the fog of a new field is
     carved (fewer samples per ray then); None: cone_angle from the start. The default was

@@ -50,6 +50,13 @@ RUNS: bool | str = "auto"
 """An occupied cell's samples as one run (False: one test per sample); "auto": on CUDA only.
 The run's closed form pays where it spares a GPU's threads their per-sample branches; the CPU
 backend runs a thread's samples one after another, and there it costs more than it saves."""
+SINGLE_PASS: bool = False
+"""March once (`march_scratch`): each thread keeps its first samples in scratch rows while it
+counts, and a copy places them once the counts are scanned; False: march twice (count, then
+write). The same samples either way; which is faster is the GPU's to say (RESULTS.md)."""
+SCRATCH_MAX_SLOTS = 2**27
+"""The single pass's scratch rows hold at most this many samples (two float32 each, 1 GiB):
+more rays than that allows get shorter rows, and a slice longer than its row is marched again."""
 _PARALLEL = 1e-12  # |d_k| below this: the ray is parallel to the slab (avoids 0 * inf = NaN)
 
 
@@ -155,6 +162,7 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
         max_samples: int,
         n_seg: int,
         write: int,
+        stride: int,
         counts: wp.array(dtype=wp.int32),
         seg_info: wp.array(dtype=wp.vec2i),
         t_starts: wp.array(dtype=float),
@@ -169,11 +177,18 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
         t0, t1 = ray_box(o, d, lo, hi)
         t0 = wp.max(t0, near)
         t1 = wp.min(t1, far)
+        # write 0: count (to max_samples); 1: write seg_info's slice (with stride > 0 only
+        # the slices longer than stride: the shorter came from the scratch); 2: count and
+        # keep the first `stride` samples in this thread's scratch rows (single pass)
         limit = max_samples
         base = wp.int32(0)
-        if write != 0:
+        if write == 1:
             base = seg_info[tid][0]
             limit = seg_info[tid][1]
+            if stride > 0 and limit <= stride:
+                return
+        if write == 2:
+            base = tid * stride
         jm1 = wp.float32(-1.0)
         if use_jitter != 0:
             jm1 = jitter[r] - 1.0
@@ -246,10 +261,11 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
                         ):
                             occ = 0
                     if occ != 0:
-                        if write != 0:
+                        if write == 1 or (write == 2 and n < stride):
                             t_starts[base + n] = ta
                             t_ends[base + n] = tb
-                            ray_indices[base + n] = r
+                            if write == 1:
+                                ray_indices[base + n] = r
                         n += 1
                         if wp.static(runs and not cylinder):
                             if run_ok:
@@ -263,12 +279,16 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
                                 kk = run_end(rule, lat, k, kk_cap, t1, end)
                                 m = wp.min(kk - k - 1, limit - n)
                                 if write != 0:
+                                    m_w = m
+                                    if write == 2:
+                                        m_w = wp.max(wp.min(m, stride - n), 0)
                                     t = tb_raw
-                                    for i in range(m):
+                                    for i in range(m_w):
                                         t_next = lattice_point(rule, lat, k + 2 + i)
                                         t_starts[base + n + i] = t
                                         t_ends[base + n + i] = wp.min(t_next, t1)
-                                        ray_indices[base + n + i] = r
+                                        if write == 1:
+                                            ray_indices[base + n + i] = r
                                         t = t_next
                                 n += m
                                 step = kk - k
@@ -278,7 +298,7 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
             else:
                 ta = lattice_point(rule, lat, k)
             tb_raw = lattice_point(rule, lat, k + 1)
-        if write != 0:
+        if write == 1:
             # never reached (both passes run this same code); keeps the buffer fully written
             for i in range(n, limit):
                 t_starts[base + i] = t1
@@ -348,6 +368,7 @@ class MarchPlan(NamedTuple):
     n_seg: int
     max_samples: int
     like: torch.Tensor
+    bound: int  # samples a thread holds at most, the degenerate rays aside (`_thread_bound`)
 
 
 def plan_march(
@@ -411,7 +432,18 @@ def plan_march(
         int(max_samples),
         n_seg,
     ]
-    return MarchPlan(kernel, head, R, n_seg, int(max_samples), rays_o)
+    bound = _thread_bound(box, rule, int(max_samples), n_seg)
+    return MarchPlan(kernel, head, R, n_seg, int(max_samples), rays_o, bound)
+
+
+def _thread_bound(box: list[float], rule, max_samples: int, n_seg: int) -> int:
+    """The most samples one thread (a ray's segment) takes: a ray crosses the box in at most
+    its diagonal / dt_min lattice intervals (steps never fall below dt_min), two more for the
+    jitter and the ends, split over n_seg segments. Rays with no direction or an unbounded
+    range can take more (to max_samples): the single pass marches those again."""
+    diag = math.sqrt(sum((box[i + 3] - box[i]) ** 2 for i in range(3)))
+    per_ray = math.ceil(min(diag / rule.a, 1e9)) + 4
+    return max(1, min(max_samples, -(-per_ray // n_seg) + 2))
 
 
 @functools.cache
@@ -437,27 +469,83 @@ def _cap_segments(counts: wp.array(dtype=wp.int32), n_seg: int, max_samples: int
         left = left - take
 
 
-def count_samples(p: MarchPlan) -> torch.Tensor:
-    """Samples of each (ray, segment), (R * n_seg,) int32, the per-ray cap applied."""
+class Scratch(NamedTuple):
+    """The single pass's rows: thread i's first samples at [i * stride, (i + 1) * stride)."""
+
+    t_starts: torch.Tensor
+    t_ends: torch.Tensor
+    stride: int
+
+
+def scratch_stride(p: MarchPlan, single_pass: bool | None) -> int:
+    """Scratch slots per thread for a single pass, or 0: march twice."""
+    if not (SINGLE_PASS if single_pass is None else single_pass) or p.R == 0:
+        return 0
+    return min(p.bound, SCRATCH_MAX_SLOTS // (p.R * p.n_seg))
+
+
+def count_samples(
+    p: MarchPlan, single_pass: bool | None = None
+) -> tuple[torch.Tensor, Scratch | None]:
+    """Samples of each (ray, segment), (R * n_seg,) int32, the per-ray cap applied; with a
+    single pass (`SINGLE_PASS` unless given) also the samples themselves, in scratch rows."""
     dev = p.like.device
     counts = _empty(p.R * p.n_seg, dtype=torch.int32, device=dev)
     f0, i0 = _dummy(dev, torch.float32), _dummy(dev, torch.int32)
-    si0 = _dummy(dev, torch.int32, 2)  # never read in the count pass
-    launch(
-        p.kernel, p.R * p.n_seg, p.like, [*p.head, 0, counts, fast_view(si0, wp.vec2i), f0, f0, i0]
-    )
+    si0 = _dummy(dev, torch.int32, 2)  # never read while counting
+    stride, scratch = scratch_stride(p, single_pass), None
+    ts, te = f0, f0
+    if stride:
+        ts = _empty(p.R * p.n_seg * stride, dtype=torch.float32, device=dev)
+        te = _empty(p.R * p.n_seg * stride, dtype=torch.float32, device=dev)
+        scratch = Scratch(ts, te, stride)
+    args = [*p.head, 2 if stride else 0, stride, counts, fast_view(si0, wp.vec2i), ts, te, i0]
+    launch(p.kernel, p.R * p.n_seg, p.like, args)
     if p.n_seg > 1:
         # the cap keeps each ray's nearest samples; one kernel, where a row-wise cumsum, clamp
         # and diff took five (the cumsum alone 0.1 ms of an H200 step at 8,192 rays x 4)
         launch(_cap_segments, p.R, p.like, [counts, p.n_seg, p.max_samples])
-    return counts
+    return counts, scratch
 
 
-def write_samples(p: MarchPlan, seg_info, t_starts, t_ends, ray_indices) -> None:
-    """Writes segment j's samples at seg_info[j] = (first slot, count), (R * n_seg, 2) int32."""
-    counts = _dummy(p.like.device, torch.int32)
-    args = [*p.head, 1, counts, fast_view(seg_info, wp.vec2i), t_starts, t_ends, ray_indices]
-    launch(p.kernel, p.R * p.n_seg, p.like, args)
+@wp.kernel(enable_backward=False)
+def _place_scratch(
+    rows_s: wp.array(dtype=float),
+    rows_e: wp.array(dtype=float),
+    stride: int,
+    n_seg: int,
+    seg_info: wp.array(dtype=wp.vec2i),
+    t_starts: wp.array(dtype=float),
+    t_ends: wp.array(dtype=float),
+    ray_indices: wp.array(dtype=wp.int32),
+):
+    """One thread per (ray, segment): its slice's samples copied from its scratch row (a slice
+    longer than the row is left to the march's write pass)."""
+    i = wp.tid()
+    first, n = seg_info[i][0], seg_info[i][1]
+    if n > stride:
+        return
+    r = i / n_seg
+    for k in range(n):
+        t_starts[first + k] = rows_s[i * stride + k]
+        t_ends[first + k] = rows_e[i * stride + k]
+        ray_indices[first + k] = r
+
+
+def write_samples(
+    p: MarchPlan, seg_info, t_starts, t_ends, ray_indices, scratch: Scratch | None = None
+) -> None:
+    """Writes segment j's samples at seg_info[j] = (first slot, count), (R * n_seg, 2) int32:
+    marched again, or copied from `count_samples`' scratch rows (where a slice is longer than
+    its row, that one marched again; a launch whose other threads return at once)."""
+    counts, stride = _dummy(p.like.device, torch.int32), 0
+    if scratch is not None:
+        stride = scratch.stride
+        si = fast_view(seg_info, wp.vec2i)
+        rows = [scratch.t_starts, scratch.t_ends, stride, p.n_seg, si]
+        launch(_place_scratch, p.R * p.n_seg, p.like, [*rows, t_starts, t_ends, ray_indices])
+    args = [*p.head, 1, stride, counts, fast_view(seg_info, wp.vec2i), t_starts, t_ends]
+    launch(p.kernel, p.R * p.n_seg, p.like, [*args, ray_indices])
 
 
 def march_rays(
@@ -473,6 +561,7 @@ def march_rays(
     max_samples: int = 1024,
     jitter: torch.Tensor | None = None,
     segments: int | None = None,
+    single_pass: bool | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Sample intervals along rays at occupied cells only (no gradients).
 
@@ -490,6 +579,8 @@ def march_rays(
             Fixed jitter gives bit-identical output.
         segments: threads per ray (each marches a contiguous part of the ray's lattice; the
             output does not depend on it). Default: 1 on CPU; on GPU 2^15 / R, in 1..8.
+        single_pass: march once into scratch rows, then copy (`count_samples`), instead of
+            twice; the same output. None: `SINGLE_PASS`.
     Returns:
         packed_info (R, 2) int32, t_starts (S,), t_ends (S,) float32, ray_indices (S,) int32.
         S is read back from the GPU (one host sync): `march_rays_fixed` avoids it.
@@ -509,7 +600,7 @@ def march_rays(
         segments,
     )
     R, n_seg, dev = p.R, p.n_seg, p.like.device
-    seg_counts = count_samples(p)
+    seg_counts, scratch = count_samples(p, single_pass)
     csum = torch.cumsum(seg_counts, 0, dtype=torch.int32)
     seg_info = torch.stack([csum - seg_counts, seg_counts], 1).contiguous()
     per_ray = seg_counts.view(R, n_seg).sum(1, dtype=torch.int32)
@@ -519,5 +610,5 @@ def march_rays(
     t_ends = _empty(S, dtype=torch.float32, device=dev)
     ray_indices = _empty(S, dtype=torch.int32, device=dev)
     if S > 0:
-        write_samples(p, seg_info, t_starts, t_ends, ray_indices)
+        write_samples(p, seg_info, t_starts, t_ends, ray_indices, scratch)
     return packed_info, t_starts, t_ends, ray_indices

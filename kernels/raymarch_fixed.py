@@ -2,10 +2,10 @@
 
 `march_rays` sizes its outputs from the sample count, which the host must read back: every call
 waits for the GPU. Here the caller fixes the capacity. The same compiled kernel runs the same two
-passes (count, write); between them an exclusive scan (torch.cumsum) and one small kernel place
-ray r's samples at [start_r, start_r + n_r), in ray order, exactly where `march_rays` puts them,
-all on the device. So when everything fits, the first `n_used` slots are `march_rays`' output
-bit for bit.
+passes (count, write; or one, `raymarch.SINGLE_PASS`); between them an exclusive scan
+(torch.cumsum) and one small kernel place ray r's samples at [start_r, start_r + n_r), in ray
+order, exactly where `march_rays` puts them, all on the device. So when everything fits, the
+first `n_used` slots are `march_rays`' output bit for bit.
 
 Overflow is never silent: a ray whose slice would end past `capacity` gets no samples (count 0)
 and is flagged in `overflow`. Slices are laid out in ray order, so the rays that do not fit are
@@ -162,6 +162,7 @@ def march_rays_fixed(
     max_samples: int = 1024,
     jitter: torch.Tensor | None = None,
     segments: int | None = None,
+    single_pass: bool | None = None,
     *,
     capacity: int,
     out: FixedSamples | None = None,
@@ -202,7 +203,7 @@ def march_rays_fixed(
         out.n_used.zero_()
         out.n_wanted.zero_()
     else:
-        seg_counts = count_samples(p)
+        seg_counts, scratch = count_samples(p, single_pass)
         csum = torch.cumsum(seg_counts, 0, dtype=torch.int32)
         seg_info = torch.empty(p.R * p.n_seg, 2, dtype=torch.int32, device=dev)
         launch(
@@ -221,6 +222,6 @@ def march_rays_fixed(
                 out.n_wanted,
             ],
         )
-        write_samples(p, seg_info, out.t_starts, out.t_ends, out.ray_indices)
+        write_samples(p, seg_info, out.t_starts, out.t_ends, out.ray_indices, scratch)
     launch(pad_tail, capacity, p.like, [out.n_used, out.t_starts, out.t_ends, out.ray_indices])
     return out

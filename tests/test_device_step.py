@@ -59,6 +59,31 @@ def test_device_path_takes_the_plain_paths_steps(scene, tmp_path, backend):
         assert_same_tensor(wa[k], wb[k], k)
 
 
+@pytest.mark.parametrize("mode", ["plain", "device"])
+def test_the_single_pass_march_trains_the_two_passes_steps(scene, tmp_path, mode, monkeypatch):
+    """`MarcherOptions.single_pass` marches once: the same samples, so the same steps, on the
+    exactly sized buffers (plain) and the fixed-capacity ones (device); recorded in the run's
+    config."""
+    from fastenerf.kernels import raymarch as rm
+
+    strides, stride_of = [], rm.scratch_stride
+    monkeypatch.setattr(
+        rm, "scratch_stride", lambda *a: strides.append(stride_of(*a)) or strides[-1]
+    )
+    runs = []
+    for single in (False, True):
+        opts = {**NGP_TINY, "single_pass": single}
+        t = make(scene, tmp_path / f"s{single}", mode, "ngp", steps=4, backend_options=opts)
+        strides.clear()
+        losses = [t.step()["loss"] for _ in range(4)]
+        t.flush_stats()
+        runs.append([float(s["loss"]) for s in t.history] if mode == "device" else losses)
+        assert strides and all((x > 0) == single for x in strides)  # the march it asked for
+    assert runs[0] == runs[1] and all(math.isfinite(x) for x in runs[0])
+    config = json.loads((tmp_path / "sTrue" / "config.json").read_text())
+    assert '"single_pass": true' in json.dumps(config)
+
+
 def test_device_path_skips_a_non_finite_loss(scene, tmp_path):
     trainer = make(scene, tmp_path / "run", "device", steps=3)
     before = weights(trainer)

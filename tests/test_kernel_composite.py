@@ -303,6 +303,7 @@ def test_render_benchmarks_run_at_tiny_size():
     assert r["n_samples"] > 0 and r["warp_march_ms"] > 0 and r["torch_march_ms"] > 0
     assert r["count_mismatch_fraction"] < 0.01 and r["max_abs_err_rgb"] < 1e-2
     assert r["march_fixed_matches_march_rays"] and r["warp_march_fixed_ms"] > 0
+    assert r["march_single_matches"] and r["warp_march_single_ms"] > 0
     assert r["warp_pipeline_fixed_ms"] > 0 and r["fixed_capacity"] > r["n_samples"]
 
 

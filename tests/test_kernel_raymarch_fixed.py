@@ -217,3 +217,76 @@ def test_composite_over_fixed_buffers_equals_exact(slack):
     torch.testing.assert_close(gc[:n], ref_gc[:n], rtol=0, atol=0)
     torch.testing.assert_close(gs[:n], ref_gs[:n], rtol=0, atol=0)
     assert torch.isfinite(gs).all() and torch.isfinite(gc).all() and gs[:n].abs().sum() > 0
+
+
+# -- the single pass (raymarch.SINGLE_PASS): the same samples from one march --------------
+
+
+def _both(fn, *args, **kw):
+    """fn's outputs marched twice and marched once, in that order."""
+    return fn(*args, single_pass=False, **kw), fn(*args, single_pass=True, **kw)
+
+
+def _same(a, b) -> None:
+    for x, y in zip(a, b, strict=True):
+        assert torch.equal(x, y)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_single_pass_gives_the_two_passes_samples(case):
+    """Exact and fixed buffers, fitting and overflowing (nothing past the capacity), and the
+    per-ray cap split over segments (CASES' last): bit for bit."""
+    from fastenerf.kernels import raymarch as rm
+
+    gen = _gen()
+    args, exact = _march(case, gen)
+    p = rm.plan_march(*args)
+    assert rm.scratch_stride(p, True) == p.bound < 10**6  # rows sized by the box, not the cap
+    _same(*_both(march_rays, *args))
+    S, R = exact[1].numel(), exact[0].shape[0]
+    for capacity in (S + 37, S - 1, S // 3):
+        outs = []
+        for single in (False, True):
+            big, out = poisoned_out(R, capacity)
+            outs.append(march_rays_fixed(*args, single, capacity=capacity, out=out))
+            assert untouched_past(big, capacity)
+        _same(*outs)
+        check_against_exact(outs[1], exact, capacity)
+
+
+def test_single_pass_marches_again_what_its_rows_cannot_hold(monkeypatch):
+    """Rows shorter than a slice (a ray with no direction reaches max_samples; or the scratch
+    limit shortens every row): those slices come from a second march, the rest from the
+    rows, and the output is still the two passes' own; with no room at all, two passes."""
+    from fastenerf.kernels import raymarch as rm
+
+    gen = _gen()
+    box = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
+    o, d = _rays(60, gen)
+    o[0], d[0] = torch.tensor([0.1, 0.2, 0.3]), torch.zeros(3)  # t1 ~ 1e30: max_samples
+    grid = OccupancyGrid(box, resolution=16)  # new: every cell occupied
+    args = (o, d, box, grid, 0.0, None, 0.0, 0.01, 0.01, 300, torch.rand(60, generator=gen), 3)
+    p = rm.plan_march(*args)
+    two, one = _both(march_rays, *args)
+    _same(two, one)
+    assert two[0][0, 1] == 300 > p.bound  # the degenerate ray's slice outgrew its row
+    assert (two[0][1:, 1] <= p.n_seg * p.bound).all() and two[0][1:, 1].max() > p.bound
+    R = p.R * p.n_seg
+    for slots in (3 * R, R - 1):  # rows of 3 samples; no room: scratch_stride 0
+        monkeypatch.setattr(rm, "SCRATCH_MAX_SLOTS", slots)
+        assert rm.scratch_stride(p, True) == slots // R
+        _same(two, march_rays(*args, single_pass=True))
+        fixed = _both(march_rays_fixed, *args, capacity=two[1].numel() - 5)
+        _same(*fixed)
+        assert fixed[0].overflow.any()
+
+
+def test_single_pass_is_off_unless_asked_and_follows_the_module_switch(monkeypatch):
+    from fastenerf.kernels import raymarch as rm
+
+    gen = _gen()
+    args, _ = _march(CASES[0], gen)
+    p = rm.plan_march(*args)
+    assert rm.SINGLE_PASS is False and rm.scratch_stride(p, None) == 0
+    monkeypatch.setattr(rm, "SINGLE_PASS", True)
+    assert rm.scratch_stride(p, None) == p.bound and rm.scratch_stride(p, False) == 0

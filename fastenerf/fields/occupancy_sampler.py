@@ -97,6 +97,7 @@ class OccupancySampler:
             dt_min=opt.dt_min,
             max_samples=opt.max_samples,
             jitter=jitter,
+            single_pass=opt.single_pass,
         )
         if train and self.sample_capacity is not None:
             return self._march_fixed(rays_o, rays_d, cone, march)
