@@ -2,9 +2,9 @@
 # The next lease's job (../next_gpu.txt), started detached once Warp is staged (copy this
 # folder to .gpu-job, COMMIT set; `bash benchmarks/gpu_start.sh s46` starts it):
 # 0. `benchmarks.mlp_widths` (SH in the kernel's layout now), `benchmarks.kernels_render`
-#    (march and composite against PyTorch), and `profile_step` on toyset and
-#    plant from the BEFORE tree (4328e9b: the colour input still on torch's 2-byte cat) and
-#    from this tree (0e1cf8a or later), one scene after the other;
+#    (march and composite against PyTorch, the single pass beside the two), `profile_step` on
+#    toyset and plant from the BEFORE tree (4328e9b: the colour input still on torch's 2-byte
+#    cat), and on every scene from this tree with the march's two passes against one;
 # 1. runs.txt: 64 windows per step against 16 (shiny; second seeds elsewhere), then the
 #    refined run at 0 degrees beside a plain run on its own 64-window batch.
 # Everything lands in RES/s46 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
@@ -21,16 +21,24 @@ note "mlp_widths rc $?"
 $PY -m benchmarks.kernels_render --device "$DEVICE" --repeats "${KR_REPEATS:-20}" \
     > "$RES/kernels_render.json" 2> "$RES/kernels_render.log"
 note "kernels_render rc $?"
+# the colour input's cat: the BEFORE tree on toyset and plant (the "two" variant below is after)
 for s in toyset plant; do
     ready $s
-    for t in before after; do
-        tree=$AFTER; [ $t = before ] && tree=$BEFORE
-        [ -e "$tree/fastenerf/kernels" ] || ln -s ../kernels "$tree/fastenerf/kernels"
-        (cd "$tree" && PYTHONPATH=$tree${PYTHONPATH:+:$PYTHONPATH} $PY -m benchmarks.profile_step --scene "$DATA/$s" \
-            --device "$DEVICE" --warmup "${WARMUP:-1000}" --steps 50 --quiet \
-            --out "$RES/prof_${s}_$t") > "$RES/prof_${s}_$t.log" 2>&1
-        note "profile $s $t rc $?"
-    done
+    [ -e "$BEFORE/fastenerf/kernels" ] || ln -s ../kernels "$BEFORE/fastenerf/kernels"
+    (cd "$BEFORE" && PYTHONPATH=$BEFORE${PYTHONPATH:+:$PYTHONPATH} $PY -m benchmarks.profile_step \
+        --scene "$DATA/$s" --device "$DEVICE" --warmup "${WARMUP:-1000}" --steps 50 --quiet \
+        --out "$RES/prof_${s}_before") > "$RES/prof_${s}_before.log" 2>&1
+    note "profile $s before rc $?"
+done
+# the single-pass march against the two passes in the step, every scene (same samples: the
+# step time decides the default)
+for s in toyset plant lattice shiny blocks; do
+    ready $s
+    $PY -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
+        --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/prof_${s}_sp" \
+        --variant 'two={"backend_options": {"single_pass": false}}' \
+        --variant 'one={"backend_options": {"single_pass": true}}' > "$RES/prof_${s}_sp.log" 2>&1
+    note "profile $s single pass rc $?"
 done
 WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" \
     "$(cat "$HERE/COMMIT" 2>/dev/null)"
