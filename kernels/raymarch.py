@@ -170,13 +170,6 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
         ray_indices: wp.array(dtype=wp.int32),
     ):
         tid = wp.tid()
-        r = tid / n_seg
-        seg = tid - r * n_seg
-        o = rays_o[r]
-        d = rays_d[r]
-        t0, t1 = ray_box(o, d, lo, hi)
-        t0 = wp.max(t0, near)
-        t1 = wp.min(t1, far)
         # write 0: count (to max_samples); 1: write seg_info's slice (with stride > 0 only
         # the slices longer than stride: the shorter came from the scratch); 2: count and
         # keep the first `stride` samples in this thread's scratch rows (single pass)
@@ -189,6 +182,13 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
                 return
         if write == 2:
             base = tid * stride
+        r = tid / n_seg
+        seg = tid - r * n_seg
+        o = rays_o[r]
+        d = rays_d[r]
+        t0, t1 = ray_box(o, d, lo, hi)
+        t0 = wp.max(t0, near)
+        t1 = wp.min(t1, far)
         jm1 = wp.float32(-1.0)
         if use_jitter != 0:
             jm1 = jitter[r] - 1.0
