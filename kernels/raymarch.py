@@ -51,7 +51,7 @@ RUNS: bool | str = "auto"
 The run's closed form pays where it spares a GPU's threads their per-sample branches; the CPU
 backend runs a thread's samples one after another, and there it costs more than it saves."""
 SINGLE_PASS: bool = False
-"""March once (`march_scratch`): each thread keeps its first samples in scratch rows while it
+"""March once (`count_samples`): each thread keeps its first samples in scratch rows while it
 counts, and a copy places them once the counts are scanned; False: march twice (count, then
 write). The same samples either way; which is faster is the GPU's to say (RESULTS.md)."""
 SCRATCH_MAX_SLOTS = 2**27
