@@ -57,7 +57,7 @@ class MarcherOptions:
     """Most samples along one ray."""
     single_pass: bool = False
     """March each ray once, keeping its samples in scratch rows while counting them, then
-    copy them into place (kernels/raymarch.py, `SINGLE_PASS`); False: march twice (count,
+    copy them into place (kernels/march_scratch.py, `SINGLE_PASS`); False: march twice (count,
     then write). The same samples either way."""
     early_cone_angle: float | None = field(default=1.0 / 64, metadata={"min": 0.0, "max": 1.0})
     """Cone angle of the first `early_steps` training steps, while the fog of a new field is

@@ -31,6 +31,7 @@ from typing import NamedTuple
 import torch
 import warp as wp
 
+from . import march_scratch
 from .common import as_float32, fast_view, init, launch
 from .lattice import StepRule, lattice_point, make_lattice, run_end, step_rule, u_of
 from .occupancy import (
@@ -50,13 +51,6 @@ RUNS: bool | str = "auto"
 """An occupied cell's samples as one run (False: one test per sample); "auto": on CUDA only.
 The run's closed form pays where it spares a GPU's threads their per-sample branches; the CPU
 backend runs a thread's samples one after another, and there it costs more than it saves."""
-SINGLE_PASS: bool = False
-"""March once (`count_samples`): each thread keeps its first samples in scratch rows while it
-counts, and a copy places them once the counts are scanned; False: march twice (count, then
-write). The same samples either way; which is faster is the GPU's to say (RESULTS.md)."""
-SCRATCH_MAX_SLOTS = 2**27
-"""The single pass's scratch rows hold at most this many samples (two float32 each, 1 GiB):
-more rays than that allows get shorter rows, and a slice longer than its row is marched again."""
 _PARALLEL = 1e-12  # |d_k| below this: the ray is parallel to the slab (avoids 0 * inf = NaN)
 
 
@@ -368,7 +362,7 @@ class MarchPlan(NamedTuple):
     n_seg: int
     max_samples: int
     like: torch.Tensor
-    bound: int  # samples a thread holds at most, the degenerate rays aside (`_thread_bound`)
+    bound: int  # samples a thread takes at most, degenerate rays aside (march_scratch)
 
 
 def plan_march(
@@ -432,18 +426,8 @@ def plan_march(
         int(max_samples),
         n_seg,
     ]
-    bound = _thread_bound(box, rule, int(max_samples), n_seg)
+    bound = march_scratch.thread_bound(box, rule.a, int(max_samples), n_seg)
     return MarchPlan(kernel, head, R, n_seg, int(max_samples), rays_o, bound)
-
-
-def _thread_bound(box: list[float], rule, max_samples: int, n_seg: int) -> int:
-    """The most samples one thread (a ray's segment) takes: a ray crosses the box in at most
-    its diagonal / dt_min lattice intervals (steps never fall below dt_min), two more for the
-    jitter and the ends, split over n_seg segments. Rays with no direction or an unbounded
-    range can take more (to max_samples): the single pass marches those again."""
-    diag = math.sqrt(sum((box[i + 3] - box[i]) ** 2 for i in range(3)))
-    per_ray = math.ceil(min(diag / rule.a, 1e9)) + 4
-    return max(1, min(max_samples, -(-per_ray // n_seg) + 2))
 
 
 @functools.cache
@@ -469,36 +453,18 @@ def _cap_segments(counts: wp.array(dtype=wp.int32), n_seg: int, max_samples: int
         left = left - take
 
 
-class Scratch(NamedTuple):
-    """The single pass's rows: thread i's first samples at [i * stride, (i + 1) * stride)."""
-
-    t_starts: torch.Tensor
-    t_ends: torch.Tensor
-    stride: int
-
-
-def scratch_stride(p: MarchPlan, single_pass: bool | None) -> int:
-    """Scratch slots per thread for a single pass, or 0: march twice."""
-    if not (SINGLE_PASS if single_pass is None else single_pass) or p.R == 0:
-        return 0
-    return min(p.bound, SCRATCH_MAX_SLOTS // (p.R * p.n_seg))
-
-
 def count_samples(
     p: MarchPlan, single_pass: bool | None = None
-) -> tuple[torch.Tensor, Scratch | None]:
+) -> tuple[torch.Tensor, march_scratch.Scratch | None]:
     """Samples of each (ray, segment), (R * n_seg,) int32, the per-ray cap applied; with a
-    single pass (`SINGLE_PASS` unless given) also the samples themselves, in scratch rows."""
-    dev = p.like.device
-    counts = _empty(p.R * p.n_seg, dtype=torch.int32, device=dev)
+    single pass (`march_scratch.SINGLE_PASS` unless given) also the samples, in scratch rows."""
+    dev, threads = p.like.device, p.R * p.n_seg
+    counts = _empty(threads, dtype=torch.int32, device=dev)
     f0, i0 = _dummy(dev, torch.float32), _dummy(dev, torch.int32)
     si0 = _dummy(dev, torch.int32, 2)  # never read while counting
-    stride, scratch = scratch_stride(p, single_pass), None
-    ts, te = f0, f0
-    if stride:
-        ts = _empty(p.R * p.n_seg * stride, dtype=torch.float32, device=dev)
-        te = _empty(p.R * p.n_seg * stride, dtype=torch.float32, device=dev)
-        scratch = Scratch(ts, te, stride)
+    stride = march_scratch.scratch_stride(threads, p.bound, single_pass)
+    scratch = march_scratch.new_scratch(threads, stride, dev) if stride else None
+    ts, te = (scratch.t_starts, scratch.t_ends) if stride else (f0, f0)
     args = [*p.head, 2 if stride else 0, stride, counts, fast_view(si0, wp.vec2i), ts, te, i0]
     launch(p.kernel, p.R * p.n_seg, p.like, args)
     if p.n_seg > 1:
@@ -508,44 +474,16 @@ def count_samples(
     return counts, scratch
 
 
-@wp.kernel(enable_backward=False)
-def _place_scratch(
-    rows_s: wp.array(dtype=float),
-    rows_e: wp.array(dtype=float),
-    stride: int,
-    n_seg: int,
-    seg_info: wp.array(dtype=wp.vec2i),
-    t_starts: wp.array(dtype=float),
-    t_ends: wp.array(dtype=float),
-    ray_indices: wp.array(dtype=wp.int32),
-):
-    """One thread per (ray, segment): its slice's samples copied from its scratch row (a slice
-    longer than the row is left to the march's write pass)."""
-    i = wp.tid()
-    first, n = seg_info[i][0], seg_info[i][1]
-    if n > stride:
-        return
-    r = i / n_seg
-    for k in range(n):
-        t_starts[first + k] = rows_s[i * stride + k]
-        t_ends[first + k] = rows_e[i * stride + k]
-        ray_indices[first + k] = r
-
-
-def write_samples(
-    p: MarchPlan, seg_info, t_starts, t_ends, ray_indices, scratch: Scratch | None = None
-) -> None:
+def write_samples(p: MarchPlan, seg_info, t_starts, t_ends, ray_indices, scratch=None) -> None:
     """Writes segment j's samples at seg_info[j] = (first slot, count), (R * n_seg, 2) int32:
-    marched again, or copied from `count_samples`' scratch rows (where a slice is longer than
-    its row, that one marched again; a launch whose other threads return at once)."""
-    counts, stride = _dummy(p.like.device, torch.int32), 0
+    marched again, or copied from `count_samples`' scratch rows (a slice longer than its row
+    marched again, in a launch whose other threads return at once)."""
+    counts, stride, si = _dummy(p.like.device, torch.int32), 0, fast_view(seg_info, wp.vec2i)
     if scratch is not None:
         stride = scratch.stride
-        si = fast_view(seg_info, wp.vec2i)
-        rows = [scratch.t_starts, scratch.t_ends, stride, p.n_seg, si]
-        launch(_place_scratch, p.R * p.n_seg, p.like, [*rows, t_starts, t_ends, ray_indices])
-    args = [*p.head, 1, stride, counts, fast_view(seg_info, wp.vec2i), t_starts, t_ends]
-    launch(p.kernel, p.R * p.n_seg, p.like, [*args, ray_indices])
+        march_scratch.place_rows(scratch, p.n_seg, si, t_starts, t_ends, ray_indices)
+    args = [*p.head, 1, stride, counts, si, t_starts, t_ends, ray_indices]
+    launch(p.kernel, p.R * p.n_seg, p.like, args)
 
 
 def march_rays(

@@ -2,7 +2,7 @@
 
 `march_rays` sizes its outputs from the sample count, which the host must read back: every call
 waits for the GPU. Here the caller fixes the capacity. The same compiled kernel runs the same two
-passes (count, write; or one, `raymarch.SINGLE_PASS`); between them an exclusive scan
+passes (count, write; or one, `march_scratch.SINGLE_PASS`); between them an exclusive scan
 (torch.cumsum) and one small kernel place ray r's samples at [start_r, start_r + n_r), in ray
 order, exactly where `march_rays` puts them, all on the device. So when everything fits, the
 first `n_used` slots are `march_rays`' output bit for bit.

@@ -64,11 +64,11 @@ def test_the_single_pass_march_trains_the_two_passes_steps(scene, tmp_path, mode
     """`MarcherOptions.single_pass` marches once: the same samples, so the same steps, on the
     exactly sized buffers (plain) and the fixed-capacity ones (device); recorded in the run's
     config."""
-    from fastenerf.kernels import raymarch as rm
+    from fastenerf.kernels import march_scratch as ms
 
-    strides, stride_of = [], rm.scratch_stride
+    strides, stride_of = [], ms.scratch_stride
     monkeypatch.setattr(
-        rm, "scratch_stride", lambda *a: strides.append(stride_of(*a)) or strides[-1]
+        ms, "scratch_stride", lambda *a: strides.append(stride_of(*a)) or strides[-1]
     )
     runs = []
     for single in (False, True):

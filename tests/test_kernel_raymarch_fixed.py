@@ -219,7 +219,7 @@ def test_composite_over_fixed_buffers_equals_exact(slack):
     assert torch.isfinite(gs).all() and torch.isfinite(gc).all() and gs[:n].abs().sum() > 0
 
 
-# -- the single pass (raymarch.SINGLE_PASS): the same samples from one march --------------
+# -- the single pass (march_scratch.SINGLE_PASS): the same samples from one march ----------
 
 
 def _both(fn, *args, **kw):
@@ -236,12 +236,13 @@ def _same(a, b) -> None:
 def test_single_pass_gives_the_two_passes_samples(case):
     """Exact and fixed buffers, fitting and overflowing (nothing past the capacity), and the
     per-ray cap split over segments (CASES' last): bit for bit."""
+    from fastenerf.kernels import march_scratch as ms
     from fastenerf.kernels import raymarch as rm
 
     gen = _gen()
     args, exact = _march(case, gen)
     p = rm.plan_march(*args)
-    assert rm.scratch_stride(p, True) == p.bound < 10**6  # rows sized by the box, not the cap
+    assert ms.scratch_stride(p.R * p.n_seg, p.bound, True) == p.bound < 10**6  # not the cap
     _same(*_both(march_rays, *args))
     S, R = exact[1].numel(), exact[0].shape[0]
     for capacity in (S + 37, S - 1, S // 3):
@@ -258,6 +259,7 @@ def test_single_pass_marches_again_what_its_rows_cannot_hold(monkeypatch):
     """Rows shorter than a slice (a ray with no direction reaches max_samples; or the scratch
     limit shortens every row): those slices come from a second march, the rest from the
     rows, and the output is still the two passes' own; with no room at all, two passes."""
+    from fastenerf.kernels import march_scratch as ms
     from fastenerf.kernels import raymarch as rm
 
     gen = _gen()
@@ -273,8 +275,8 @@ def test_single_pass_marches_again_what_its_rows_cannot_hold(monkeypatch):
     assert (two[0][1:, 1] <= p.n_seg * p.bound).all() and two[0][1:, 1].max() > p.bound
     R = p.R * p.n_seg
     for slots in (3 * R, R - 1):  # rows of 3 samples; no room: scratch_stride 0
-        monkeypatch.setattr(rm, "SCRATCH_MAX_SLOTS", slots)
-        assert rm.scratch_stride(p, True) == slots // R
+        monkeypatch.setattr(ms, "SCRATCH_MAX_SLOTS", slots)
+        assert ms.scratch_stride(R, p.bound, True) == slots // R
         _same(two, march_rays(*args, single_pass=True))
         fixed = _both(march_rays_fixed, *args, capacity=two[1].numel() - 5)
         _same(*fixed)
@@ -282,11 +284,14 @@ def test_single_pass_marches_again_what_its_rows_cannot_hold(monkeypatch):
 
 
 def test_single_pass_is_off_unless_asked_and_follows_the_module_switch(monkeypatch):
+    from fastenerf.kernels import march_scratch as ms
     from fastenerf.kernels import raymarch as rm
 
     gen = _gen()
     args, _ = _march(CASES[0], gen)
     p = rm.plan_march(*args)
-    assert rm.SINGLE_PASS is False and rm.scratch_stride(p, None) == 0
-    monkeypatch.setattr(rm, "SINGLE_PASS", True)
-    assert rm.scratch_stride(p, None) == p.bound and rm.scratch_stride(p, False) == 0
+    n = p.R * p.n_seg
+    assert ms.SINGLE_PASS is False and ms.scratch_stride(n, p.bound, None) == 0
+    monkeypatch.setattr(ms, "SINGLE_PASS", True)
+    assert ms.scratch_stride(n, p.bound, None) == p.bound
+    assert ms.scratch_stride(n, p.bound, False) == ms.scratch_stride(0, p.bound, True) == 0
