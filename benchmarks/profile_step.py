@@ -15,7 +15,9 @@ occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plain
   "optimizer", the remaining PyTorch element-wise and reduction kernels as "torch other"),
   and the device's busy share of the wall time (kernel time / wall; low means the step waits on
   the host: launches, Python, a sync); every "torch other" kernel by name with its launches
-  per step (`other_kernels`: what no kind claims is where a fusion is still to be had);
+  per step (`other_kernels`: what no kind claims is where a fusion is still to be had); the
+  device's idle gaps between kernels and the host event running as each began
+  (`device_gaps`: what the GPU waits on);
 - CPU only: the ops with the most self CPU time (Warp kernels appear as their autograd
   functions, e.g. _HashGridEncodeBackward).
 `--variant` trains one of benchmarks.cpu_preset's variants instead of the preset's defaults
@@ -40,6 +42,7 @@ import torch
 from benchmarks.cli import add_run_arguments, benchmark_main
 from benchmarks.cpu_preset import build, parse_variant
 from benchmarks.curve import load_scene_dir, make_config
+from benchmarks.device_gaps import device_gaps
 from benchmarks.session import session_info, write_report
 from fastenerf.backends import BACKEND_NAMES
 from fastenerf.errors import InputError
@@ -212,13 +215,18 @@ def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> di
     for ev in prof.key_averages():
         if ev.key in host:
             host[ev.key] += ev.cpu_time_total / 1e3  # inclusive, ms over all steps
-    kernels = []
+    kernels, spans, host_events = [], [], []
     if dev.type == "cuda":
         for ev in prof.events():
+            tr = getattr(ev, "time_range", None)
             if getattr(ev, "device_type", None) != torch.autograd.DeviceType.CUDA:
+                if tr is not None:
+                    host_events.append((tr.start, tr.end, ev.name))
                 continue
             if not _is_annotation(ev) and (us := _device_time_us(ev)):
                 kernels.append((ev.name, us / 1e3))
+                if tr is not None:
+                    spans.append((tr.start, tr.end))
     tally = tally_kernels(kernels, steps)
     wall_ms = 1e3 * sum(wall) / steps
     device_ms = sum(tally["device_ms"].values())
@@ -231,6 +239,7 @@ def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> di
         "device_busy_ms": device_ms if dev.type == "cuda" else None,
         "device_busy_share": device_ms / wall_ms if dev.type == "cuda" else None,
         "top_cpu_ops_ms": {} if dev.type == "cuda" else _top_cpu_ops(prof, steps),
+        "device_gaps": device_gaps(spans, host_events, steps) if spans else None,
     }
 
 
@@ -318,6 +327,19 @@ def markdown(res: dict) -> str:
         for k, v in list(res["other_kernels"].items())[:OTHER_ROWS]:
             name = k.replace("|", "\\|")
             lines.append(f"| `{name}` | {v['ms']:.3f} | {v['launches']:.1f} |")
+    if res.get("device_gaps"):
+        g = res["device_gaps"]
+        lines += [
+            "",
+            f"Device idle between kernels (profiled steps): {g['idle_ms']:.3f} ms/step in "
+            f"{g['gaps']:.1f} gaps (largest {g['largest_gap_ms']:.3f} ms); the host event "
+            "running as each gap began:",
+            "",
+            "| host event at the gap | idle ms/step |",
+            "|---|---:|",
+        ]
+        for k, v in g["idle_by_host_ms"].items():
+            lines.append(f"| `{k.replace('|', chr(92) + '|')}` | {v:.3f} |")
     if res.get("captures"):
         c = res["captures"]
         lines += [

@@ -296,6 +296,7 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     assert "CPU numbers" in (out / "profile_step.md").read_text()
     # the CPU step captures no CUDA graph; a run with a graphed step says how many it made
     assert res["captures"] in (None, {"unprofiled": 0, "profiled": 0})
+    assert res["device_gaps"] is None  # no device timeline on the CPU
 
 
 def test_mlp_widths_times_the_padded_colour_mlp_beside_the_unpadded_on_cpu(tmp_path, capsys):
@@ -391,6 +392,47 @@ def test_profile_step_lists_every_kernel_no_kind_claims():
     rows = [ln for ln in md.splitlines() if ln.startswith("| `")]
     assert len(rows) == 2 and rows[0].endswith("| 0.150 | 1.0 |") and "2u>, \\|4>" in rows[0]
     assert rows[1].endswith("| 0.100 | 2.0 |")
+
+
+def test_device_gaps_names_what_the_host_was_doing_when_the_device_ran_dry():
+    """Kernel intervals merged, gaps under GAP_MIN_US ignored, each gap charged to the
+    innermost host event containing its start (or to none), per step; and the Markdown."""
+    from benchmarks import profile_step as ps
+    from benchmarks.device_gaps import GAP_MIN_US, device_gaps, merge_intervals
+
+    kernels = [(0, 10), (5, 12), (20, 30), (30, 31), (100, 110), (113, 130), (300, 310)]
+    kernels += [(500, 510)]
+    assert merge_intervals(kernels[:4]) == [(0, 12), (20, 31)]
+    host = [
+        (0, 400, "step"),
+        (11, 25, "sample_rays"),
+        (11.5, 13, "aten::item"),  # innermost at 12: the 8 us gap is its
+        (26, 28, "aten::add"),  # over before the gap at 31 begins
+    ]
+    g = device_gaps(kernels, host, steps=2)
+    assert 113 - 110 < GAP_MIN_US  # ignored
+    # gaps: 12-20 (aten::item); 31-100, 130-300 and 310-500 (step)
+    assert g["idle_by_host_ms"] == {
+        "step": pytest.approx((69 + 170 + 190) / 1e3 / 2),
+        "aten::item": pytest.approx(8 / 1e3 / 2),
+    }
+    assert g["idle_ms"] == pytest.approx((8 + 69 + 170 + 190) / 1e3 / 2)
+    assert g["gaps"] == 2.0 and g["largest_gap_ms"] == pytest.approx(0.19)
+    lone = device_gaps([(0, 1), (50, 60)], [(70, 80, "late")], steps=1)
+    assert lone["idle_by_host_ms"] == {"no host event": pytest.approx(0.049)}
+    assert device_gaps([(0, 1)], [], steps=1)["idle_ms"] == 0.0
+    res = {
+        "session": {"machine": {"name": "H200", "cpu_numbers": False}},
+        "scene": "s", "backend": "ngp", "preset": "fast", "warmup": 1, "steps": 2,
+        "rays_per_step": 8, "samples_per_step": 10.0, "samples_per_ray": None,
+        "marched_per_ray": None, "trained_slots": None, "wall_ms_unprofiled": 2.0,
+        "wall_ms": 2.0, "device_busy_ms": 1.0, "device_busy_share": 0.5,
+        "host_ms": dict.fromkeys(ps.STAGES, 0.1), "device_ms": {"mlp": 1.0},
+        "device_gaps": g,
+    }  # fmt: skip
+    md = ps.markdown(res)
+    assert "0.218 ms/step in 2.0 gaps (largest 0.190 ms)" in md
+    assert "| `step` | 0.214 |" in md and "| `aten::item` | 0.004 |" in md
 
 
 def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):

@@ -1,0 +1,74 @@
+"""Where a profiled GPU waits: the idle gaps between its kernels, and what the host was doing
+when each one began (issue #17: the GPU busy 71-77 % of a step with no host sync counted).
+
+`device_gaps` merges the device's kernel intervals, takes every gap between them and names
+it after the innermost host event (a `record_function` stage, a torch op, a CUDA runtime call)
+running at the gap's start: the host was there when the device ran dry. Times come from
+torch.profiler, which puts CPU and GPU events on one clock (microseconds). The profiler's own
+per-op bookkeeping slows the host, so the gaps it sees are an upper bound on the unprofiled
+step's; their split between host events is what it is for.
+"""
+
+from __future__ import annotations
+
+import bisect
+
+GAP_MIN_US = 5.0
+"""Gaps shorter than this are a launch's own latency, not the host falling behind."""
+SCAN_BACK = 4000
+"""Host events searched backwards from a gap's start for one that contains it."""
+
+
+def merge_intervals(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Overlapping or touching (start, end) intervals merged, in order."""
+    out: list[list[float]] = []
+    for s, e in sorted(spans):
+        if out and s <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], e)
+        else:
+            out.append([s, e])
+    return [(s, e) for s, e in out]
+
+
+def innermost(host: list[tuple[float, float, str]], starts: list[float], t: float) -> str | None:
+    """The name of the latest-starting host event (start, end, name) that contains time t:
+    `host` sorted by start, `starts` its start times."""
+    i = bisect.bisect_right(starts, t) - 1
+    for j in range(i, max(-1, i - SCAN_BACK), -1):
+        s, e, name = host[j]
+        if s <= t < e:
+            return name
+    return None
+
+
+def device_gaps(
+    kernels: list[tuple[float, float]],
+    host: list[tuple[float, float, str]],
+    steps: int,
+    top: int = 12,
+) -> dict:
+    """The device's idle time between its first and last kernel, per step, and its split by
+    the host event running at each gap's start.
+
+    kernels: (start_us, end_us) of every device kernel; host: (start_us, end_us, name) of the
+    host events; steps: the steps the window covers. Returns idle_ms (per step), gaps (per
+    step, those of at least GAP_MIN_US), largest_gap_ms, and idle_by_host_ms: the `top` host
+    events' idle ms per step, largest first ("no host event" where none contains the start).
+    """
+    merged = merge_intervals(kernels)
+    pairs = zip(merged[:-1], merged[1:], strict=True)
+    gaps = [(a[1], b[0]) for a, b in pairs if b[0] - a[1] >= GAP_MIN_US]
+    host = sorted(host)
+    starts = [h[0] for h in host]
+    by: dict[str, float] = {}
+    for g0, g1 in gaps:
+        name = innermost(host, starts, g0) or "no host event"
+        by[name] = by.get(name, 0.0) + (g1 - g0)
+    steps = max(1, steps)
+    ranked = sorted(by.items(), key=lambda kv: -kv[1])[:top]
+    return {
+        "idle_ms": sum(g1 - g0 for g0, g1 in gaps) / 1e3 / steps,
+        "gaps": len(gaps) / steps,
+        "largest_gap_ms": max((g1 - g0 for g0, g1 in gaps), default=0.0) / 1e3,
+        "idle_by_host_ms": {name[:100]: us / 1e3 / steps for name, us in ranked},
+    }
