@@ -215,18 +215,7 @@ def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> di
     for ev in prof.key_averages():
         if ev.key in host:
             host[ev.key] += ev.cpu_time_total / 1e3  # inclusive, ms over all steps
-    kernels, spans, host_events = [], [], []
-    if dev.type == "cuda":
-        for ev in prof.events():
-            tr = getattr(ev, "time_range", None)
-            if getattr(ev, "device_type", None) != torch.autograd.DeviceType.CUDA:
-                if tr is not None:
-                    host_events.append((tr.start, tr.end, ev.name))
-                continue
-            if not _is_annotation(ev) and (us := _device_time_us(ev)):
-                kernels.append((ev.name, us / 1e3))
-                if tr is not None:
-                    spans.append((tr.start, tr.end))
+    kernels, spans, host_events = split_events(prof.events() if dev.type == "cuda" else [])
     tally = tally_kernels(kernels, steps)
     wall_ms = 1e3 * sum(wall) / steps
     device_ms = sum(tally["device_ms"].values())
@@ -241,6 +230,23 @@ def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> di
         "top_cpu_ops_ms": {} if dev.type == "cuda" else _top_cpu_ops(prof, steps),
         "device_gaps": device_gaps(spans, host_events, steps) if spans else None,
     }
+
+
+def split_events(events) -> tuple[list, list, list]:
+    """A profile's events split: the device kernels' (name, ms) and (start_us, end_us), and
+    the host events' (start_us, end_us, name) (ranges' own device rows left out)."""
+    kernels, spans, host = [], [], []
+    for ev in events:
+        tr = getattr(ev, "time_range", None)
+        if getattr(ev, "device_type", None) != torch.autograd.DeviceType.CUDA:
+            if tr is not None:
+                host.append((tr.start, tr.end, ev.name))
+            continue
+        if not _is_annotation(ev) and (us := _device_time_us(ev)):
+            kernels.append((ev.name, us / 1e3))
+            if tr is not None:
+                spans.append((tr.start, tr.end))
+    return kernels, spans, host
 
 
 def tally_kernels(kernels: list[tuple[str, float]], steps: int, top: int = 15) -> dict[str, dict]:

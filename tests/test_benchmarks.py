@@ -432,6 +432,26 @@ def test_device_gaps_names_what_the_host_was_doing_when_the_device_ran_dry():
     }  # fmt: skip
     md = ps.markdown(res)
     assert "0.218 ms/step in 2.0 gaps (largest 0.190 ms)" in md
+    # a profile's own event objects (torch's FunctionEvent), CUDA rows as a GPU run has them
+    from torch.autograd import DeviceType
+    from torch.autograd.profiler_util import FunctionEvent
+
+    def event(i, name, t0, t1, kind=DeviceType.CPU, **kw):
+        return FunctionEvent(i, name, 0, t0, t1, use_device="cuda", device_type=kind, **kw)
+
+    cuda = DeviceType.CUDA
+    evs = [
+        event(0, "sample_rays", 0, 50),
+        event(1, "cudaGraphLaunch", 5, 8),
+        event(2, "_march_kernel_forward", 10, 30, cuda),
+        event(3, "sample_rays", 10, 40, cuda, is_user_annotation=True),  # a range's own row
+        event(4, "nvjet_sm90_gemm", 40, 45, cuda),
+    ]
+    kernels, spans, host_events = ps.split_events(evs)
+    assert kernels == [("_march_kernel_forward", 0.02), ("nvjet_sm90_gemm", 0.005)]
+    assert spans == [(10, 30), (40, 45)]
+    assert host_events == [(0, 50, "sample_rays"), (5, 8, "cudaGraphLaunch")]
+    assert device_gaps(spans, host_events, 1)["idle_by_host_ms"] == {"sample_rays": 0.01}
     assert "| `step` | 0.214 |" in md and "| `aten::item` | 0.004 |" in md
 
 
