@@ -283,6 +283,11 @@ def _top_cpu_ops(prof, steps: int, n: int = 12) -> dict[str, float]:
     return {ev.key[:80]: ev.self_cpu_time_total / 1e3 / steps for ev in ops[:n]}
 
 
+def _code_cell(name: str) -> str:
+    """A kernel's or host event's name as a Markdown table cell (its pipes escaped)."""
+    return "`" + name.replace("|", "\\|") + "`"
+
+
 def markdown(res: dict) -> str:
     m = res["session"]["machine"]["name"]
     cpu = res["session"]["machine"]["cpu_numbers"]
@@ -331,8 +336,7 @@ def markdown(res: dict) -> str:
     if res.get("other_kernels"):
         lines += ["", '| "torch other" kernel | ms/step | launches/step |', "|---|---:|---:|"]
         for k, v in list(res["other_kernels"].items())[:OTHER_ROWS]:
-            name = k.replace("|", "\\|")
-            lines.append(f"| `{name}` | {v['ms']:.3f} | {v['launches']:.1f} |")
+            lines.append(f"| {_code_cell(k)} | {v['ms']:.3f} | {v['launches']:.1f} |")
     if res.get("device_gaps"):
         g = res["device_gaps"]
         lines += [
@@ -345,7 +349,7 @@ def markdown(res: dict) -> str:
             "|---|---:|",
         ]
         for k, v in g["idle_by_host_ms"].items():
-            lines.append(f"| `{k.replace('|', chr(92) + '|')}` | {v:.3f} |")
+            lines.append(f"| {_code_cell(k)} | {v:.3f} |")
     if res.get("captures"):
         c = res["captures"]
         lines += [
