@@ -32,11 +32,15 @@ import math
 
 import torch
 
+from benchmarks.cli import benchmark_main
 from benchmarks.timing import copy_bandwidth_gbs, time_ms
+from fastenerf.errors import require
+from fastenerf.io import atomic_path
 from fastenerf.kernels.composite import T_MIN, composite, resolve_layout
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays
 from fastenerf.kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
+from fastenerf.outputs import OutputKind, claim_output
 
 
 def _time_ms(fn, device: str, repeats: int, warmup: int = 3, inner: int = 1) -> float:
@@ -553,8 +557,10 @@ def compare_outputs(a: dict, b: dict) -> dict:
     return r
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+DUMP_FILE = OutputKind("kernel outputs file", False, lambda p: p.suffix.lower() == ".pt")
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--n-rays", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=10)
@@ -562,8 +568,15 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--only", choices=("composite", "march_composite"), help="run one benchmark, not both"
     )
-    ap.add_argument("--dump", help="also save kernel_outputs() here (compare_outputs on CPU)")
-    a = ap.parse_args(argv)
+    ap.add_argument("--dump", help="also save kernel_outputs() here, a .pt file (compare_outputs)")
+
+
+def run(a: argparse.Namespace) -> int:
+    for flag in ("n_rays", "repeats", "mean_samples"):
+        v = getattr(a, flag)
+        require(v is None or v >= 1, f"--{flag.replace('_', '-')} must be at least 1, got {v}")
+    if a.dump:
+        claim_output(a.dump, DUMP_FILE, force=None)
     cuda = a.device.startswith("cuda")
     n = a.n_rays or (2**16 if cuda else 2**10)
     res = {}
@@ -574,9 +587,14 @@ def main(argv=None) -> int:
             a.device, n, resolution=128 if cuda else 64, repeats=a.repeats
         )
     if a.dump:
-        torch.save(kernel_outputs(a.device), a.dump)
+        with atomic_path(a.dump) as tmp:
+            torch.save(kernel_outputs(a.device), tmp)
     print(json.dumps(res, indent=1, default=lambda x: float(x) if math.isfinite(x) else str(x)))
     return 0
+
+
+def main(argv: list[str] | None = None, prog: str | None = None) -> int:
+    return benchmark_main("kernels_render", __doc__, add_arguments, run, argv, prog)
 
 
 if __name__ == "__main__":

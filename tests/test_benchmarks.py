@@ -1039,3 +1039,21 @@ def test_capacity_replay_counts_what_each_patience_would_have_recaptured(tmp_pat
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], (bad, err)
     assert table.read_text() == kept
+
+
+def test_kernels_render_refuses_bad_numbers_and_outputs_in_one_line(tmp_path, capsys):
+    from benchmarks import kernels_render
+
+    folder = tmp_path / "a_folder.pt"
+    folder.mkdir()
+    (folder / "keep").write_text("keep")
+    for bad, words in (
+        (["--n-rays", "-3"], "--n-rays must be at least 1"),
+        (["--repeats", "0"], "--repeats must be at least 1"),
+        (["--mean-samples", "0"], "--mean-samples must be at least 1"),
+        (["--dump", str(folder)], "a_folder.pt"),
+    ):
+        assert kernels_render.main(["--device", "cpu", *bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("kernels_render: error:") and words in err[0]
+    assert (folder / "keep").read_text() == "keep"  # nothing touched
