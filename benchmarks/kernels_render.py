@@ -439,10 +439,9 @@ def _bench_march_single(margs, exact, device, repeats, torch_ms: float) -> dict:
         and torch.equal(f.ray_indices[:S], exact[3])
     )
     r["speedup_march_single"] = torch_ms / r["warp_march_single_ms"]
+    two, one = r["warp_march_quarter_two_ms"], r["warp_march_quarter_single_ms"]
     r["single_over_two"] = r["warp_march_two_ms"] / r["warp_march_single_ms"]
-    r["single_over_two_quarter"] = (
-        r["warp_march_quarter_two_ms"] / r["warp_march_quarter_single_ms"]
-    )
+    r["single_over_two_quarter"] = two / one
     return r
 
 
