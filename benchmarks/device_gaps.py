@@ -17,6 +17,10 @@ GAP_MIN_US = 5.0
 """Gaps shorter than this are a launch's own latency, not the host falling behind."""
 SCAN_BACK = 4000
 """Host events searched backwards from a gap's start for one that contains it."""
+PATH_DEPTH = 4
+"""Containing host events named in a gap's path (the innermost ones): the stage or op that
+made the call the device ran dry in, e.g. `grid_update › aten::item › cudaStreamSynchronize`."""
+PATH_SEP = " › "
 
 
 def merge_intervals(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -30,15 +34,14 @@ def merge_intervals(spans: list[tuple[float, float]]) -> list[tuple[float, float
     return [(s, e) for s, e in out]
 
 
-def innermost(host: list[tuple[float, float, str]], starts: list[float], t: float) -> str | None:
-    """The name of the latest-starting host event (start, end, name) that contains time t:
-    `host` sorted by start, `starts` its start times."""
+def containing(host: list[tuple[float, float, str]], starts: list[float], t: float) -> list[str]:
+    """The names of the host events (start, end, name) that contain time t, outermost first
+    (by start): `host` sorted by start, `starts` its start times."""
     i = bisect.bisect_right(starts, t) - 1
-    for j in range(i, max(-1, i - SCAN_BACK), -1):
-        s, e, name = host[j]
-        if s <= t < e:
-            return name
-    return None
+    names = [
+        host[j][2] for j in range(i, max(-1, i - SCAN_BACK), -1) if host[j][0] <= t < host[j][1]
+    ]
+    return names[::-1]
 
 
 def device_gaps(
@@ -52,8 +55,9 @@ def device_gaps(
 
     kernels: (start_us, end_us) of every device kernel; host: (start_us, end_us, name) of the
     host events; steps: the steps the window covers. Returns idle_ms (per step), gaps (per
-    step, those of at least GAP_MIN_US), largest_gap_ms, and idle_by_host_ms: the `top` host
-    events' idle ms per step, largest first ("no host event" where none contains the start).
+    step, those of at least GAP_MIN_US), largest_gap_ms, idle_by_host_ms: the `top` host
+    events' idle ms per step, largest first ("no host event" where none contains the start),
+    and idle_by_path_ms: the same by the PATH_DEPTH innermost containing events, outer first.
     """
     merged = merge_intervals(kernels)
     pairs = zip(merged[:-1], merged[1:], strict=True)
@@ -61,14 +65,22 @@ def device_gaps(
     host = sorted(host)
     starts = [h[0] for h in host]
     by: dict[str, float] = {}
+    by_path: dict[str, float] = {}
     for g0, g1 in gaps:
-        name = innermost(host, starts, g0) or "no host event"
-        by[name] = by.get(name, 0.0) + (g1 - g0)
+        names = containing(host, starts, g0) or ["no host event"]
+        by[names[-1]] = by.get(names[-1], 0.0) + (g1 - g0)
+        path = PATH_SEP.join(n[:60] for n in names[-PATH_DEPTH:])
+        by_path[path] = by_path.get(path, 0.0) + (g1 - g0)
     steps = max(1, steps)
-    ranked = sorted(by.items(), key=lambda kv: -kv[1])[:top]
+
+    def ranked(d: dict[str, float], width: int) -> dict[str, float]:
+        rows = sorted(d.items(), key=lambda kv: -kv[1])[:top]
+        return {name[:width]: us / 1e3 / steps for name, us in rows}
+
     return {
         "idle_ms": sum(g1 - g0 for g0, g1 in gaps) / 1e3 / steps,
         "gaps": len(gaps) / steps,
         "largest_gap_ms": max((g1 - g0 for g0, g1 in gaps), default=0.0) / 1e3,
-        "idle_by_host_ms": {name[:100]: us / 1e3 / steps for name, us in ranked},
+        "idle_by_host_ms": ranked(by, 100),
+        "idle_by_path_ms": ranked(by_path, 250),
     }

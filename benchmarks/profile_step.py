@@ -43,6 +43,7 @@ from benchmarks.cli import add_run_arguments, benchmark_main
 from benchmarks.cpu_preset import build, parse_variant
 from benchmarks.curve import load_scene_dir, make_config
 from benchmarks.device_gaps import device_gaps
+from benchmarks.explicit_syncs import ExplicitSyncs
 from benchmarks.session import session_info, write_report
 from fastenerf.backends import BACKEND_NAMES
 from fastenerf.errors import InputError
@@ -181,16 +182,23 @@ class ProfileSteps(Hook):
             trainer.request_stop()
 
     def _watch_syncs(self, trainer, on: bool) -> None:
-        """Count the host-device synchronisations of SYNC_CHECK_STEPS steps (CUDA only)."""
-        if trainer.device.type != "cuda":
-            return
+        """Count the synchronisations of SYNC_CHECK_STEPS steps: the explicit ones (any
+        device) and the implicit host-device ones (torch's sync debug mode, CUDA only)."""
         import warnings
 
+        cuda = trainer.device.type == "cuda"
         if on:
-            self._catch = warnings.catch_warnings(record=True)
-            self._seen = self._catch.__enter__()
-            warnings.simplefilter("always")
-            torch.cuda.set_sync_debug_mode("warn")
+            self._explicit = ExplicitSyncs().__enter__()
+            if cuda:
+                self._catch = warnings.catch_warnings(record=True)
+                self._seen = self._catch.__enter__()
+                warnings.simplefilter("always")
+                torch.cuda.set_sync_debug_mode("warn")
+            return
+        self._explicit.__exit__(None, None, None)
+        self.result["explicit_syncs_per_step"] = self._explicit.per_step(SYNC_CHECK_STEPS)
+        self.result["explicit_sync_examples"] = self._explicit.examples()
+        if not cuda:
             return
         torch.cuda.set_sync_debug_mode("default")
         self._catch.__exit__(None, None, None)
@@ -206,6 +214,8 @@ class ProfileSteps(Hook):
         self.bar.close()
         if self.phase == "profiled":
             self.prof.__exit__(None, None, None)
+        elif self.phase == "syncs":  # stopped early: the wrapped entry points restored
+            self._watch_syncs(trainer, False)
 
 
 def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> dict[str, Any]:
@@ -350,6 +360,10 @@ def markdown(res: dict) -> str:
         ]
         for k, v in g["idle_by_host_ms"].items():
             lines.append(f"| {_code_cell(k)} | {v:.3f} |")
+        if g.get("idle_by_path_ms"):
+            lines += ["", "| host events at the gap, outer › inner | idle ms/step |", "|---|---:|"]
+            for k, v in g["idle_by_path_ms"].items():
+                lines.append(f"| {_code_cell(k)} | {v:.3f} |")
     if res.get("captures"):
         c = res["captures"]
         lines += [
@@ -361,6 +375,13 @@ def markdown(res: dict) -> str:
     if res.get("host_syncs_per_step") is not None:
         where = ", ".join(res.get("host_sync_examples") or []) or "none"
         lines += ["", f"Host syncs per step: {res['host_syncs_per_step']:.2f} (at {where})."]
+    if res.get("explicit_syncs_per_step") is not None:
+        where = ", ".join(res.get("explicit_sync_examples") or []) or "none"
+        lines += [
+            "",
+            f"Explicit synchronisations per step: {res['explicit_syncs_per_step']:.2f} "
+            f"(at {where}).",
+        ]
     lines.append("")
     return "\n".join(lines)
 

@@ -297,6 +297,10 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     # the CPU step captures no CUDA graph; a run with a graphed step says how many it made
     assert res["captures"] in (None, {"unprofiled": 0, "profiled": 0})
     assert res["device_gaps"] is None  # no device timeline on the CPU
+    # the plain CPU step asks for no synchronisation (Warp's CPU launches are synchronous)
+    assert res["explicit_syncs_per_step"] == 0.0 and res["explicit_sync_examples"] == []
+    md = (out / "profile_step.md").read_text()
+    assert "Explicit synchronisations per step: 0.00 (at none)." in md
 
 
 def test_mlp_widths_times_the_padded_colour_mlp_beside_the_unpadded_on_cpu(tmp_path, capsys):
@@ -416,6 +420,10 @@ def test_device_gaps_names_what_the_host_was_doing_when_the_device_ran_dry():
         "step": pytest.approx((69 + 170 + 190) / 1e3 / 2),
         "aten::item": pytest.approx(8 / 1e3 / 2),
     }
+    assert g["idle_by_path_ms"] == {  # the containing events, outer first
+        "step": pytest.approx((69 + 170 + 190) / 1e3 / 2),
+        "step › sample_rays › aten::item": pytest.approx(8 / 1e3 / 2),
+    }
     assert g["idle_ms"] == pytest.approx((8 + 69 + 170 + 190) / 1e3 / 2)
     assert g["gaps"] == 2.0 and g["largest_gap_ms"] == pytest.approx(0.19)
     lone = device_gaps([(0, 1), (50, 60)], [(70, 80, "late")], steps=1)
@@ -453,6 +461,7 @@ def test_device_gaps_names_what_the_host_was_doing_when_the_device_ran_dry():
     assert host_events == [(0, 50, "sample_rays"), (5, 8, "cudaGraphLaunch")]
     assert device_gaps(spans, host_events, 1)["idle_by_host_ms"] == {"sample_rays": 0.01}
     assert "| `step` | 0.214 |" in md and "| `aten::item` | 0.004 |" in md
+    assert "| `step › sample_rays › aten::item` | 0.004 |" in md
 
 
 def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):
@@ -1057,3 +1066,30 @@ def test_kernels_render_refuses_bad_numbers_and_outputs_in_one_line(tmp_path, ca
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("kernels_render: error:") and words in err[0]
     assert (folder / "keep").read_text() == "keep"  # nothing touched
+
+
+def test_explicit_syncs_names_the_line_that_waits_and_restores_the_entry_points():
+    """Every wrapped call is counted against the caller's own file and line (not torch's or
+    Warp's), the wrapped function still runs, and leaving the context restores the originals."""
+    import sys
+
+    import torch
+    import warp as wp
+
+    from benchmarks.explicit_syncs import ExplicitSyncs
+
+    before = (wp.synchronize, torch.cuda.synchronize, torch.cuda.Event.synchronize)
+    with ExplicitSyncs() as syncs:
+        assert wp.synchronize is not before[0]
+        for _ in range(3):
+            wp.synchronize()  # a no-op without CUDA, counted all the same
+        line = sys._getframe().f_lineno - 1
+        wp.synchronize_device("cpu")
+    assert (wp.synchronize, torch.cuda.synchronize, torch.cuda.Event.synchronize) == before
+    here = f"{Path(__file__).name}:{line}"
+    assert syncs.per_step(2) == 2.0
+    (first, n), (second, m) = syncs.calls.most_common()
+    assert n == 3 and m == 1
+    assert here in first and "[warp.synchronize]" in first and "(test_explicit_syncs" in first
+    assert "[warp.synchronize_device]" in second
+    assert syncs.examples(1) == [f"{first} x3"]
