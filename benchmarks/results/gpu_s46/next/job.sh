@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# The next lease's job (../next_gpu.txt), started detached once Warp is staged (copy this
+# folder to .gpu-job, COMMIT set; `bash benchmarks/gpu_start.sh s47` starts it):
+# 0. `profile_step` on toyset, plant and blocks with the default step: each device gap's
+#    containing host events and the explicit synchronisations by caller (what the
+#    0.2-0.5 ms/step the H200 idled at `cudaDeviceSynchronize` comes from);
+# 1. runs.txt: the single-pass march against the two passes, 60 s runs on every scene side by
+#    side; then the refined run at 0 degrees on toyset beside its plain runs.
+# Everything lands in RES/s47 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
+# scenes, BUDGET_S and WARMUP set, and the paths below: a CPU dry run.
+set -u
+HERE=$(cd "$(dirname "$0")" && pwd)
+AFTER=${AFTER:-/var/tmp/after}; DATA=${DATA:-/var/tmp/data}
+RES=${RES:-/var/tmp/res}/s47
+source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, $PY, DEVICE; cd to the tree
+for s in plant blocks toyset; do
+    ready $s
+    $PY -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
+        --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/prof_$s" \
+        > "$RES/prof_$s.log" 2>&1
+    note "profile $s rc $?"
+done
+WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" \
+    "$(cat "$HERE/COMMIT" 2>/dev/null)"
+note "runs done"
+touch "$RES/all.done"
