@@ -8,7 +8,7 @@ measured copy bandwidth (DESIGN §8). They also run on CPU at tiny sizes (a smok
 Compositing is timed in both Warp layouts (`composite(..., layout="ray" | "block")`: a thread
 per ray, or 32 threads per ray with tile scans), each with its speed-up over PyTorch.
 
-Plain-PyTorch baselines:
+Plain-PyTorch baselines (`benchmarks/render_torch.py`):
   - compositing: packed samples scattered into a dense (rays x max samples) array, exclusive
     transmittance with cumprod, early-stop mask, segment sums with index_add; autograd backward;
   - marching: dense uniform steps over every ray's box interval, occupancy lookup of each
@@ -33,10 +33,11 @@ import math
 import torch
 
 from benchmarks.cli import benchmark_main
+from benchmarks.render_torch import torch_composite, torch_march
 from benchmarks.timing import copy_bandwidth_gbs, time_ms
 from fastenerf.errors import require
 from fastenerf.io import atomic_path
-from fastenerf.kernels.composite import T_MIN, composite, resolve_layout
+from fastenerf.kernels.composite import composite, resolve_layout
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays
 from fastenerf.kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
@@ -45,72 +46,6 @@ from fastenerf.outputs import OutputKind, claim_output
 
 def _time_ms(fn, device: str, repeats: int, warmup: int = 3, inner: int = 1) -> float:
     return time_ms(fn, device, repeats, warmup, inner)
-
-
-# ---------------------------------------------------------------------------------------------
-# Plain-PyTorch versions of the same ops
-
-
-def torch_composite(sigmas, rgbs, t_starts, t_ends, packed_info, background=None, n_max=None):
-    """Compositing over packed samples with a dense cumulative sum and segment sums (autograd).
-    `n_max`: the largest sample count of a ray, if known (else read from the device: a host
-    sync, which a CUDA graph cannot capture)."""
-    R = packed_info.shape[0]
-    counts = packed_info[:, 1].long()
-    S = sigmas.shape[0]
-    ray = torch.repeat_interleave(torch.arange(R, device=sigmas.device), counts, output_size=S)
-    pos = torch.arange(S, device=sigmas.device) - packed_info[:, 0].long()[ray]
-    N = n_max if n_max is not None else (int(counts.max()) if R else 0)
-    tau = sigmas * (t_ends - t_starts).clamp_min(0)
-    # exclusive sum of the optical depths, as nerfacc's plain-PyTorch path (a cumprod's backward
-    # reads its input on the host, so no CUDA graph could capture it)
-    dense = torch.zeros(R, N + 1, dtype=sigmas.dtype, device=sigmas.device)
-    dense = dense.index_put((ray, pos + 1), tau)
-    T = torch.exp(-torch.cumsum(dense, 1)[ray, pos])
-    w = torch.where(T >= T_MIN, T * -torch.expm1(-tau), torch.zeros_like(T))
-    z = torch.zeros(R, dtype=sigmas.dtype, device=sigmas.device)
-    opacity = z.index_add(0, ray, w)
-    depth = z.index_add(0, ray, w * 0.5 * (t_starts + t_ends))
-    rgb = torch.zeros(R, 3, dtype=sigmas.dtype, device=sigmas.device)
-    rgb = rgb.index_add(0, ray, w[:, None] * rgbs)
-    if background is not None:
-        rgb = rgb + (1 - opacity)[:, None] * background
-    return {"rgb": rgb, "depth": depth, "opacity": opacity, "weights": w}
-
-
-def torch_march(rays_o, rays_d, aabb, binary, dt, max_samples, chunk_elems=2**26):
-    """Dense constant steps + occupancy lookup + boolean-mask compaction (one cascade)."""
-    dev, dtype = rays_o.device, rays_o.dtype
-    lo = torch.tensor(aabb[:3], dtype=dtype, device=dev)
-    hi = torch.tensor(aabb[3:], dtype=dtype, device=dev)
-    res = binary.shape[-1]
-    safe = torch.where(rays_d.abs() < 1e-12, torch.full_like(rays_d, 1e-12), rays_d)
-    ta, tb = (lo - rays_o) / safe, (hi - rays_o) / safe
-    t0 = torch.minimum(ta, tb).amax(1).clamp_min(0)
-    t1 = torch.maximum(ta, tb).amin(1)
-    hit = t1 > t0
-    n_steps = int(((t1 - t0)[hit].max() / dt).ceil()) + 1 if hit.any() else 0
-    occ = binary.reshape(-1)
-    outs = []
-    rows = max(1, chunk_elems // max(n_steps, 1))
-    for s in range(0, rays_o.shape[0], rows):
-        o, d = rays_o[s : s + rows], rays_d[s : s + rows]
-        a0, a1 = t0[s : s + rows, None], t1[s : s + rows, None]
-        k = torch.arange(n_steps, dtype=dtype, device=dev)
-        start = a0 + k * dt
-        end = torch.minimum(start + dt, a1)
-        mid = 0.5 * (start + end)
-        p = o[:, None] + mid[..., None] * d[:, None]
-        ijk = ((p - lo) / (hi - lo) * res).floor().long().clamp_(0, res - 1)
-        keep = (start < a1) & occ[(ijk[..., 0] * res + ijk[..., 1]) * res + ijk[..., 2]]
-        keep &= torch.cumsum(keep, 1) <= max_samples
-        r, _ = torch.nonzero(keep, as_tuple=True)
-        outs.append((keep.sum(1), start[keep], end[keep], r + s))
-    counts = torch.cat([x[0] for x in outs]).int()
-    csum = torch.cumsum(counts, 0, dtype=torch.int32)
-    packed = torch.stack([csum - counts, counts], 1)
-    cat = lambda i: torch.cat([x[i] for x in outs])  # noqa: E731
-    return packed, cat(1), cat(2), cat(3).int()
 
 
 # ---------------------------------------------------------------------------------------------

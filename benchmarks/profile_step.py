@@ -347,6 +347,15 @@ def markdown(res: dict) -> str:
         lines += ["", '| "torch other" kernel | ms/step | launches/step |', "|---|---:|---:|"]
         for k, v in list(res["other_kernels"].items())[:OTHER_ROWS]:
             lines.append(f"| {_code_cell(k)} | {v['ms']:.3f} | {v['launches']:.1f} |")
+    lines += _waits_lines(res)
+    lines.append("")
+    return "\n".join(lines)
+
+
+def _waits_lines(res: dict) -> list[str]:
+    """The Markdown of what the step waits on: the device's idle gaps, graph captures, host
+    and explicit synchronisations."""
+    lines: list[str] = []
     if res.get("device_gaps"):
         g = res["device_gaps"]
         lines += [
@@ -382,8 +391,7 @@ def markdown(res: dict) -> str:
             f"Explicit synchronisations per step: {res['explicit_syncs_per_step']:.2f} "
             f"(at {where}).",
         ]
-    lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def profile_one(scene, args: argparse.Namespace, device, run_dir: Path, variant) -> dict:
