@@ -12,6 +12,7 @@ step's; their split between host events is what it is for.
 from __future__ import annotations
 
 import bisect
+import re
 
 GAP_MIN_US = 5.0
 """Gaps shorter than this are a launch's own latency, not the host falling behind."""
@@ -21,6 +22,10 @@ PATH_DEPTH = 4
 """Containing host events named in a gap's path (the innermost ones): the stage or op that
 made the call the device ran dry in, e.g. `grid_update › aten::item › cudaStreamSynchronize`."""
 PATH_SEP = " › "
+REPO_DIRS = ("fastenerf", "kernels", "benchmarks")
+"""This repository's top-level folders: with Python calls profiled (`profile_step --stacks`),
+a path keeps the calls in them and drops the libraries' own (torch's, Warp's)."""
+PY_FRAME = re.compile(r"^(?P<path>\S+)\((?P<line>\d+)\): (?P<func>.+)$")
 
 
 def merge_intervals(spans: list[tuple[float, float]]) -> list[tuple[float, float]]:
@@ -42,6 +47,23 @@ def containing(host: list[tuple[float, float, str]], starts: list[float], t: flo
         host[j][2] for j in range(i, max(-1, i - SCAN_BACK), -1) if host[j][0] <= t < host[j][1]
     ]
     return names[::-1]
+
+
+def path_name(name: str) -> str | None:
+    """A host event's name in a gap's path: a torch op or CUDA call as it is, a Python call
+    ("FILE(LINE): FUNC", `--stacks`) from FILE's first folder of this repository on, None for
+    a Python call elsewhere (a library's)."""
+    m = PY_FRAME.match(name)
+    if m is None:
+        return name
+    path = m["path"].replace("\\", "/")
+    for root in REPO_DIRS:
+        if path.startswith(f"{root}/"):
+            return f"{path}({m['line']}): {m['func']}"
+        i = path.find(f"/{root}/")
+        if i >= 0:
+            return f"{path[i + 1 :]}({m['line']}): {m['func']}"
+    return None
 
 
 def device_gaps(
@@ -69,7 +91,8 @@ def device_gaps(
     for g0, g1 in gaps:
         names = containing(host, starts, g0) or ["no host event"]
         by[names[-1]] = by.get(names[-1], 0.0) + (g1 - g0)
-        path = PATH_SEP.join(n[:60] for n in names[-PATH_DEPTH:])
+        kept = [p for p in map(path_name, names) if p is not None] or names[-1:]
+        path = PATH_SEP.join(n[:80] for n in kept[-PATH_DEPTH:])
         by_path[path] = by_path.get(path, 0.0) + (g1 - g0)
     steps = max(1, steps)
 

@@ -111,8 +111,8 @@ class ProfileSteps(Hook):
     """After `warmup` steps, times `steps` steps plainly, then `steps` more under
     torch.profiler, then stops the run; `result` holds the per-step breakdown."""
 
-    def __init__(self, warmup: int, steps: int, progress: bool = True):
-        self.warmup, self.steps = warmup, steps
+    def __init__(self, warmup: int, steps: int, progress: bool = True, stacks: bool = False):
+        self.warmup, self.steps, self.stacks = warmup, steps, stacks
         self.phase = "warmup"
         self.count = 0
         self.wall: list[float] = []
@@ -160,7 +160,9 @@ class ProfileSteps(Hook):
             self.captures.append(self._captures(trainer))
             dev = trainer.device
             acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
-            self.prof = profile(activities=acts)
+            # with_stack: Python calls become host events, so a device gap's path (`device_gaps`)
+            # names the line of this repository that made it
+            self.prof = profile(activities=acts, with_stack=self.stacks)
             self.prof.__enter__()
             self.phase, self._last = "profiled", self._clock(trainer)
         elif self.phase == "profiled":
@@ -407,7 +409,7 @@ def profile_one(scene, args: argparse.Namespace, device, run_dir: Path, variant)
     else:
         cfg = make_config(args.backend, args.preset, 300.0, str(device))
         trainer = Trainer(scene, cfg, run_dir)
-    hook = ProfileSteps(args.warmup, args.steps, progress=not args.quiet)
+    hook = ProfileSteps(args.warmup, args.steps, progress=not args.quiet, stacks=args.stacks)
     trainer.run(hooks=[hook])
     if hook.result is None:
         raise InputError(f"the run ended after {trainer.step_count} steps, before the profile")
@@ -503,6 +505,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "repeat it to profile several one after another, side by side (OUT/NAME each)",
     )
     p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    p.add_argument(
+        "--stacks",
+        action="store_true",
+        help="record Python calls in the profile, so each device gap's path names the line "
+        "of this repository it began in (slows the profiled host much more: for where, not "
+        "how much)",
+    )
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:

@@ -301,6 +301,10 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     assert res["explicit_syncs_per_step"] == 0.0 and res["explicit_sync_examples"] == []
     md = (out / "profile_step.md").read_text()
     assert "Explicit synchronisations per step: 0.00 (at none)." in md
+    # with Python calls recorded the stages are still the step's own
+    assert ps.main(argv + ["--out", str(tmp_path / "stacks"), "--quiet", "--stacks"]) == 0
+    stacked = json.loads((tmp_path / "stacks" / "profile_step.json").read_text())
+    assert stacked["host_ms"]["render"] > 0 and stacked["host_ms"]["render"] < stacked["wall_ms"]
 
 
 def test_mlp_widths_times_the_padded_colour_mlp_beside_the_unpadded_on_cpu(tmp_path, capsys):
@@ -425,6 +429,20 @@ def test_device_gaps_names_what_the_host_was_doing_when_the_device_ran_dry():
         "step › sample_rays › aten::item": pytest.approx(8 / 1e3 / 2),
     }
     assert g["idle_ms"] == pytest.approx((8 + 69 + 170 + 190) / 1e3 / 2)
+    # with Python calls profiled (--stacks) a path keeps this repository's lines, not torch's
+    from benchmarks.device_gaps import path_name
+
+    calls = [
+        (0, 100, "/var/tmp/after/fastenerf/train.py(226): sync"),
+        (1, 99, "torch/cuda/__init__.py(1219): synchronize"),
+        (2, 98, "cudaDeviceSynchronize"),
+    ]
+    stacked = device_gaps([(0, 3), (50, 60)], calls, steps=1)
+    assert stacked["idle_by_path_ms"] == {
+        "fastenerf/train.py(226): sync › cudaDeviceSynchronize": pytest.approx(0.047)
+    }
+    assert path_name("kernels/common.py(9): launch") == "kernels/common.py(9): launch"
+    assert path_name("<stdin>(6): <module>") is None and path_name("aten::mm") == "aten::mm"
     assert g["gaps"] == 2.0 and g["largest_gap_ms"] == pytest.approx(0.19)
     lone = device_gaps([(0, 1), (50, 60)], [(70, 80, "late")], steps=1)
     assert lone["idle_by_host_ms"] == {"no host event": pytest.approx(0.049)}

@@ -3,7 +3,8 @@
 # folder to .gpu-job, COMMIT set; `bash benchmarks/gpu_start.sh s47` starts it):
 # 0. `profile_step` on toyset, plant and blocks with the default step: each device gap's
 #    containing host events and the explicit synchronisations by caller (what the
-#    0.2-0.5 ms/step the H200 idled at `cudaDeviceSynchronize` comes from);
+#    0.07-0.83 ms/step the H200 idled at `cudaDeviceSynchronize` comes from), and plant once
+#    more with `--stacks` (Python calls in the profile: the path names the line);
 # 1. runs.txt: the single-pass march against the two passes, 60 s runs on every scene side by
 #    side; then the refined run at 0 degrees on toyset beside its plain runs.
 # Everything lands in RES/s47 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
@@ -20,6 +21,11 @@ for s in plant blocks toyset; do
         > "$RES/prof_$s.log" 2>&1
     note "profile $s rc $?"
 done
+# the same on plant with Python calls recorded: each gap's path names the line it began in
+$PY -m benchmarks.profile_step --scene "$DATA/plant" --device "$DEVICE" \
+    --warmup "${WARMUP:-1000}" --steps 50 --quiet --stacks --out "$RES/prof_plant_stacks" \
+    > "$RES/prof_plant_stacks.log" 2>&1
+note "profile plant stacks rc $?"
 WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" \
     "$(cat "$HERE/COMMIT" 2>/dev/null)"
 note "runs done"
