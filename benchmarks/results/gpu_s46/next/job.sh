@@ -14,6 +14,10 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 AFTER=${AFTER:-/var/tmp/after}; DATA=${DATA:-/var/tmp/data}
 RES=${RES:-/var/tmp/res}/s47
 source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, $PY, DEVICE; cd to the tree
+# the allocator's and CUDA's settings the machine starts with (an expandable-segments allocator
+# synchronises the device when it unmaps memory)
+env | grep -E '^(PYTORCH|CUDA|TORCH|NVIDIA|WARP)' | sort > "$RES/env.txt"
+$PY -c "import torch; print(torch.cuda.get_allocator_backend())" >> "$RES/env.txt" 2>&1
 for s in plant blocks toyset; do
     ready $s
     $PY -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
