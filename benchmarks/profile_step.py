@@ -2,7 +2,7 @@
 
     python -m benchmarks.profile_step --scene DIR [--backend ngp] [--preset fast] \
         [--warmup 200] [--steps 50] [--device cuda] [--variant NAME[=JSON]] [--threads N] \
-        [--out OUT]
+        [--stacks] [--out OUT]
 
 The trainer runs with one hook (`ProfileSteps`): `--warmup` steps first (kernel compilation,
 occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plainly and
@@ -16,8 +16,11 @@ occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plain
   and the device's busy share of the wall time (kernel time / wall; low means the step waits on
   the host: launches, Python, a sync); every "torch other" kernel by name with its launches
   per step (`other_kernels`: what no kind claims is where a fusion is still to be had); the
-  device's idle gaps between kernels and the host event running as each began
-  (`device_gaps`: what the GPU waits on);
+  device's idle gaps between kernels and the host events running as each began, innermost
+  and as a path outer to inner (`device_gaps`: what the GPU waits on; with `--stacks` the
+  path holds the Python line of this repository too);
+- synchronisations over 32 more steps: the implicit host-device ones (torch's sync debug
+  mode, CUDA only) and the explicit ones by caller (`benchmarks.explicit_syncs`);
 - CPU only: the ops with the most self CPU time (Warp kernels appear as their autograd
   functions, e.g. _HashGridEncodeBackward).
 `--variant` trains one of benchmarks.cpu_preset's variants instead of the preset's defaults
