@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The next lease's job (../next_gpu.txt), started detached once Warp is staged (copy this
 # folder to .gpu-job, COMMIT set; `bash benchmarks/gpu_start.sh s47` starts it):
-# 0. `profile_step` on toyset, plant and blocks with the default step: each device gap's
+# 0. `kernels_render` (the single pass with slot-major scratch against the two passes);
+#    `profile_step` on plant, blocks and toyset with the default step: each device gap's
 #    containing host events and the explicit synchronisations by caller (what the
 #    0.07-0.83 ms/step the H200 idled at `cudaDeviceSynchronize` comes from), and plant once
 #    more with `--stacks` (Python calls in the profile: the path names the line);
@@ -18,6 +19,11 @@ source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, $PY, DEVICE; cd to the
 # synchronises the device when it unmaps memory)
 env | grep -E '^(PYTORCH|CUDA|TORCH|NVIDIA|WARP)' | sort > "$RES/env.txt"
 $PY -c "import torch; print(torch.cuda.get_allocator_backend())" >> "$RES/env.txt" 2>&1
+# the single pass against the two at 65,536 and 16,384 rays, its scratch slot-major now
+# (gpu_s46: 0.88x and 1.06x with rows side by side); the march and composite ratios again
+$PY -m benchmarks.kernels_render --device "$DEVICE" --repeats "${KR_REPEATS:-20}" \
+    > "$RES/kernels_render.json" 2> "$RES/kernels_render.log"
+note "kernels_render rc $?"
 for s in plant blocks toyset; do
     ready $s
     $PY -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
