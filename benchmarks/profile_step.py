@@ -67,7 +67,11 @@ STAGES = (
 )
 # Kernel name -> kind, first match wins. Warp names a kernel after its Python function.
 KERNEL_KINDS = (
-    ("march", r"march|ray_aabb"),
+    # the march's own helpers: the per-ray cap, the fixed buffers' slices and padding, the
+    # single pass's copy out of its scratch (before the thirty-fourth session: "torch other")
+    ("march", r"march|ray_aabb|cap_segments|reserve_slices|pad_tail|place_rows"),
+    ("compaction", r"_compact|_visibility|prune"),
+    ("ray points", r"_points_(forward|backward)"),
     # hashgrid.py builds its kernels in `_kernels()`: Warp names them _kernels__locals__NAME
     # (hashgrid_runs.py: run_backward__locals__backward_table_runs)
     ("hash grid", r"hash|grid_index|_kernels__locals__(forward|backward)|backward_table"),

@@ -284,6 +284,17 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     assert ps.kernel_kind("sm90_xmma_gemm_bf16bf16_bf16f32") == "mlp"
     assert ps.kernel_kind("_kernels__locals__backward_table_4e5_cuda_kernel_forward") == "hash grid"
     assert ps.kernel_kind("void at::native::vectorized_elementwise_kernel") == "torch other"
+    # the march's helpers and the compaction are theirs, not "torch other" (gpu_s46's profiles)
+    for name, kind in [
+        ("_place_rows_12c0c832_cuda_kernel_forward", "march"),
+        ("pad_tail_4b219bce_cuda_kernel_forward", "march"),
+        ("reserve_slices_f1103ae2_cuda_kernel_forward", "march"),
+        ("_cap_segments_0a1b_cuda_kernel_forward", "march"),
+        ("_compact_7d35ce40_cuda_kernel_forward", "compaction"),
+        ("_visibility_99470a68_cuda_kernel_forward", "compaction"),
+        ("_points_forward_76779c75_cuda_kernel_forward", "ray points"),
+    ]:
+        assert ps.kernel_kind(name) == kind, name
     out = tmp_path / "prof"
     argv = ["--scene", str(tiny_scene), "--device", "cpu", "--warmup", "1", "--steps", "2"]
     assert ps.main(argv + ["--out", str(out), "--quiet"]) == 0
