@@ -361,6 +361,12 @@ def markdown(res: dict) -> str:
     return "\n".join(lines)
 
 
+def _idle_table(head: str, rows: dict[str, float]) -> list[str]:
+    """A two-column Markdown table of idle ms/step by host event (or path), after a blank."""
+    out = ["", f"| {head} | idle ms/step |", "|---|---:|"]
+    return out + [f"| {_code_cell(k)} | {v:.3f} |" for k, v in rows.items()]
+
+
 def _waits_lines(res: dict) -> list[str]:
     """The Markdown of what the step waits on: the device's idle gaps, graph captures, host
     and explicit synchronisations."""
@@ -372,16 +378,10 @@ def _waits_lines(res: dict) -> list[str]:
             f"Device idle between kernels (profiled steps): {g['idle_ms']:.3f} ms/step in "
             f"{g['gaps']:.1f} gaps (largest {g['largest_gap_ms']:.3f} ms); the host event "
             "running as each gap began:",
-            "",
-            "| host event at the gap | idle ms/step |",
-            "|---|---:|",
         ]
-        for k, v in g["idle_by_host_ms"].items():
-            lines.append(f"| {_code_cell(k)} | {v:.3f} |")
+        lines += _idle_table("host event at the gap", g["idle_by_host_ms"])
         if g.get("idle_by_path_ms"):
-            lines += ["", "| host events at the gap, outer › inner | idle ms/step |", "|---|---:|"]
-            for k, v in g["idle_by_path_ms"].items():
-                lines.append(f"| {_code_cell(k)} | {v:.3f} |")
+            lines += _idle_table("host events at the gap, outer › inner", g["idle_by_path_ms"])
     if res.get("captures"):
         c = res["captures"]
         lines += [
