@@ -2,9 +2,6 @@
 samples in a row of its own while it counts them, and once the counts are capped and scanned
 one copy puts every slice in place (`kernels/raymarch.py`: `count_samples`, `write_samples`).
 
-A row is a thread's slots, stored slot-major (sample k of every thread, then k + 1): the
-threads of a warp mostly keep the same sample at once, so their writes and the copy's reads
-fall on neighbouring words, where rows side by side put each in a cache line of its own.
 Rows are sized by the most samples a thread can take (`thread_bound`), so a slice longer than
 its row is rare (a ray with no direction marches to max_samples); the march's write pass takes
 those again and its other threads return at once. The output is the two passes' bit for bit.
@@ -29,8 +26,7 @@ allows get shorter rows, and a slice longer than its row is marched again."""
 
 
 class Scratch(NamedTuple):
-    """Thread i's first `stride` samples, world units: sample k at k * threads + i (slot
-    major, so the march's and the copy's neighbouring threads touch neighbouring words)."""
+    """Thread i's first samples at [i * stride, (i + 1) * stride), world units."""
 
     t_starts: torch.Tensor
     t_ends: torch.Tensor
@@ -80,10 +76,9 @@ def _place_rows(
     if n > stride:
         return
     r = i / n_seg
-    threads = seg_info.shape[0]
     for k in range(n):
-        t_starts[first + k] = rows_s[k * threads + i]
-        t_ends[first + k] = rows_e[k * threads + i]
+        t_starts[first + k] = rows_s[i * stride + k]
+        t_ends[first + k] = rows_e[i * stride + k]
         ray_indices[first + k] = r
 
 

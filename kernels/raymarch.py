@@ -166,19 +166,16 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
         tid = wp.tid()
         # write 0: count (to max_samples); 1: write seg_info's slice (with stride > 0 only
         # the slices longer than stride: the shorter came from the scratch); 2: count and
-        # keep the first `stride` samples in this thread's scratch rows (single pass), sample
-        # n at n * threads + tid: a warp's threads at the same n write neighbouring words
+        # keep the first `stride` samples in this thread's scratch rows (single pass)
         limit = max_samples
         base = wp.int32(0)
-        pitch = wp.int32(1)
         if write == 1:
             base = seg_info[tid][0]
             limit = seg_info[tid][1]
             if stride > 0 and limit <= stride:
                 return
         if write == 2:
-            base = tid
-            pitch = counts.shape[0]
+            base = tid * stride
         r = tid / n_seg
         seg = tid - r * n_seg
         o = rays_o[r]
@@ -259,8 +256,8 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
                             occ = 0
                     if occ != 0:
                         if write == 1 or (write == 2 and n < stride):
-                            t_starts[base + n * pitch] = ta
-                            t_ends[base + n * pitch] = tb
+                            t_starts[base + n] = ta
+                            t_ends[base + n] = tb
                             if write == 1:
                                 ray_indices[base + n] = r
                         n += 1
@@ -282,8 +279,8 @@ def _march_kernel(n_cascades: int, cylinder: bool, block: int = 1, runs: bool = 
                                     t = tb_raw
                                     for i in range(m_w):
                                         t_next = lattice_point(rule, lat, k + 2 + i)
-                                        t_starts[base + (n + i) * pitch] = t
-                                        t_ends[base + (n + i) * pitch] = wp.min(t_next, t1)
+                                        t_starts[base + n + i] = t
+                                        t_ends[base + n + i] = wp.min(t_next, t1)
                                         if write == 1:
                                             ray_indices[base + n + i] = r
                                         t = t_next

@@ -255,27 +255,6 @@ def test_single_pass_gives_the_two_passes_samples(case):
         check_against_exact(outs[1], exact, capacity)
 
 
-def test_single_pass_rows_are_slot_major():
-    """Thread t's sample k sits at k * threads + t of the scratch (a warp's threads write
-    neighbouring words; rows side by side put each write in a cache line of its own): every
-    thread's column is its slice of the output, segments included."""
-    from fastenerf.kernels import raymarch as rm
-
-    args, (_, t_s, t_e, _) = _march(CASES[1], _gen())
-    p = rm.plan_march(*args)
-    counts, scratch = rm.count_samples(p, single_pass=True)
-    threads = p.R * p.n_seg
-    assert p.n_seg == 3 and scratch.t_starts.numel() == threads * scratch.stride
-    cols_s = scratch.t_starts.view(scratch.stride, threads)
-    cols_e = scratch.t_ends.view(scratch.stride, threads)
-    first = torch.cumsum(counts, 0) - counts
-    assert 0 < counts.max() <= scratch.stride and int(counts.sum()) == t_s.numel()
-    for t in range(threads):
-        a, n = int(first[t]), int(counts[t])
-        assert torch.equal(cols_s[:n, t], t_s[a : a + n]), t
-        assert torch.equal(cols_e[:n, t], t_e[a : a + n]), t
-
-
 def test_single_pass_marches_again_what_its_rows_cannot_hold(monkeypatch):
     """Rows shorter than a slice (a ray with no direction reaches max_samples; or the scratch
     limit shortens every row): those slices come from a second march, the rest from the
