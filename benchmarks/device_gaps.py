@@ -2,8 +2,10 @@
 when each one began (issue #17: the GPU busy 71-77 % of a step with no host sync counted).
 
 `device_gaps` merges the device's kernel intervals, takes every gap between them and names
-it after the innermost host event (a `record_function` stage, a torch op, a CUDA runtime call)
-running at the gap's start: the host was there when the device ran dry. Times come from
+it after the innermost host event of the training thread (a `record_function` stage, a torch
+op, a CUDA runtime call) running at the gap's start: the host was there when the device ran
+dry. Other threads' events at the gap (a profiler's, the autograd engine's) are counted apart,
+and so is the kernel that ended each gap. Times come from
 torch.profiler, which puts CPU and GPU events on one clock (microseconds). The profiler's own
 per-op bookkeeping slows the host, so the gaps it sees are an upper bound on the unprofiled
 step's; their split between host events is what it is for.
@@ -66,34 +68,53 @@ def path_name(name: str) -> str | None:
     return None
 
 
+def training_thread(host: list[tuple]) -> object:
+    """The thread of most host events (start, end, name, thread): the one that runs the
+    steps (a profile also holds the autograd engine's, the profiler's own threads)."""
+    counts: dict[object, int] = {}
+    for h in host:
+        counts[h[3]] = counts.get(h[3], 0) + 1
+    return max(counts, key=counts.__getitem__) if counts else None
+
+
 def device_gaps(
-    kernels: list[tuple[float, float]],
-    host: list[tuple[float, float, str]],
+    kernels: list[tuple],
+    host: list[tuple],
     steps: int,
     top: int = 12,
 ) -> dict:
     """The device's idle time between its first and last kernel, per step, and its split by
-    the host event running at each gap's start.
+    the training thread's host event running at each gap's start.
 
-    kernels: (start_us, end_us) of every device kernel; host: (start_us, end_us, name) of the
-    host events; steps: the steps the window covers. Returns idle_ms (per step), gaps (per
-    step, those of at least GAP_MIN_US), largest_gap_ms, idle_by_host_ms: the `top` host
-    events' idle ms per step, largest first ("no host event" where none contains the start),
-    and idle_by_path_ms: the same by the PATH_DEPTH innermost containing events, outer first.
+    kernels: (start_us, end_us[, name]) of every device kernel; host: (start_us, end_us,
+    name[, thread]) of the host events (without threads, all are the training thread's);
+    steps: the steps the window covers. Returns idle_ms (per step), gaps (per step, those of
+    at least GAP_MIN_US), largest_gap_ms, idle_by_host_ms: the `top` host events' idle ms per
+    step, largest first ("no host event" where none contains the start), idle_by_path_ms: the
+    same by the PATH_DEPTH innermost containing events, outer first; idle_other_threads_ms:
+    the same by the innermost event of another thread running at the gap's start (a sync
+    there is not the step's), and idle_by_next_kernel_ms: by the kernel that ended the gap
+    (what the device waited to start).
     """
-    merged = merge_intervals(kernels)
-    pairs = zip(merged[:-1], merged[1:], strict=True)
-    gaps = [(a[1], b[0]) for a, b in pairs if b[0] - a[1] >= GAP_MIN_US]
-    host = sorted(host)
-    starts = [h[0] for h in host]
+    host = sorted((h if len(h) > 3 else (*h, None) for h in host), key=lambda h: (h[0], h[1]))
+    main = training_thread(host)
+    mine = [h for h in host if h[3] == main]
+    others = [h for h in host if h[3] != main]
+    gaps, after = _gaps(kernels)
     by: dict[str, float] = {}
     by_path: dict[str, float] = {}
-    for g0, g1 in gaps:
-        names = containing(host, starts, g0) or ["no host event"]
-        by[names[-1]] = by.get(names[-1], 0.0) + (g1 - g0)
+    by_other: dict[str, float] = {}
+    by_next: dict[str, float] = {}
+    starts, other_starts = [h[0] for h in mine], [h[0] for h in others]
+    for (g0, g1), nxt in zip(gaps, after, strict=True):
+        names = containing(mine, starts, g0) or ["no host event"]
+        _add(by, names[-1], g1 - g0)
         kept = [p for p in map(path_name, names) if p is not None] or names[-1:]
-        path = PATH_SEP.join(n[:80] for n in kept[-PATH_DEPTH:])
-        by_path[path] = by_path.get(path, 0.0) + (g1 - g0)
+        _add(by_path, PATH_SEP.join(n[:80] for n in kept[-PATH_DEPTH:]), g1 - g0)
+        if other := containing(others, other_starts, g0):
+            _add(by_other, other[-1], g1 - g0)
+        if nxt is not None:
+            _add(by_next, nxt, g1 - g0)
     steps = max(1, steps)
 
     def ranked(d: dict[str, float], width: int) -> dict[str, float]:
@@ -106,4 +127,23 @@ def device_gaps(
         "largest_gap_ms": max((g1 - g0 for g0, g1 in gaps), default=0.0) / 1e3,
         "idle_by_host_ms": ranked(by, 100),
         "idle_by_path_ms": ranked(by_path, 250),
+        "idle_other_threads_ms": ranked(by_other, 100),
+        "idle_by_next_kernel_ms": ranked(by_next, 100),
     }
+
+
+def _add(d: dict[str, float], key: str, us: float) -> None:
+    d[key] = d.get(key, 0.0) + us
+
+
+def _gaps(kernels: list[tuple]) -> tuple[list[tuple[float, float]], list[str | None]]:
+    """The gaps of at least GAP_MIN_US between the merged kernel intervals, and the name of
+    the kernel starting at each gap's end (None for unnamed intervals)."""
+    merged = merge_intervals([(k[0], k[1]) for k in kernels])
+    first = {}
+    for k in sorted(kernels, key=lambda k: k[0]):
+        if len(k) > 2:
+            first.setdefault(k[0], k[2])
+    pairs = zip(merged[:-1], merged[1:], strict=True)
+    gaps = [(a[1], b[0]) for a, b in pairs if b[0] - a[1] >= GAP_MIN_US]
+    return gaps, [first.get(g1) for _, g1 in gaps]

@@ -252,19 +252,19 @@ def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> di
 
 
 def split_events(events) -> tuple[list, list, list]:
-    """A profile's events split: the device kernels' (name, ms) and (start_us, end_us), and
-    the host events' (start_us, end_us, name) (ranges' own device rows left out)."""
+    """A profile's events split: the device kernels' (name, ms) and (start_us, end_us, name),
+    and the host events' (start_us, end_us, name, thread) (ranges' own device rows left out)."""
     kernels, spans, host = [], [], []
     for ev in events:
         tr = getattr(ev, "time_range", None)
         if getattr(ev, "device_type", None) != torch.autograd.DeviceType.CUDA:
             if tr is not None:
-                host.append((tr.start, tr.end, ev.name))
+                host.append((tr.start, tr.end, ev.name, getattr(ev, "thread", None)))
             continue
         if not _is_annotation(ev) and (us := _device_time_us(ev)):
             kernels.append((ev.name, us / 1e3))
             if tr is not None:
-                spans.append((tr.start, tr.end))
+                spans.append((tr.start, tr.end, ev.name))
     return kernels, spans, host
 
 
@@ -362,7 +362,8 @@ def markdown(res: dict) -> str:
 
 
 def _idle_table(head: str, rows: dict[str, float]) -> list[str]:
-    """A two-column Markdown table of idle ms/step by host event (or path), after a blank."""
+    """A two-column Markdown table of idle ms/step by host event (path, kernel), after a
+    blank."""
     out = ["", f"| {head} | idle ms/step |", "|---|---:|"]
     return out + [f"| {_code_cell(k)} | {v:.3f} |" for k, v in rows.items()]
 
@@ -377,11 +378,17 @@ def _waits_lines(res: dict) -> list[str]:
             "",
             f"Device idle between kernels (profiled steps): {g['idle_ms']:.3f} ms/step in "
             f"{g['gaps']:.1f} gaps (largest {g['largest_gap_ms']:.3f} ms); the host event "
-            "running as each gap began:",
+            "running as each gap began (the training thread's):",
         ]
         lines += _idle_table("host event at the gap", g["idle_by_host_ms"])
-        if g.get("idle_by_path_ms"):
-            lines += _idle_table("host events at the gap, outer › inner", g["idle_by_path_ms"])
+        tables = [
+            ("idle_by_path_ms", "host events at the gap, outer › inner"),
+            ("idle_other_threads_ms", "another thread's host event at the gap (not the step's)"),
+            ("idle_by_next_kernel_ms", "kernel that ended the gap"),
+        ]
+        for key, head in tables:
+            if g.get(key):
+                lines += _idle_table(head, g[key])
     if res.get("captures"):
         c = res["captures"]
         lines += [

@@ -486,11 +486,41 @@ def test_device_gaps_names_what_the_host_was_doing_when_the_device_ran_dry():
     ]
     kernels, spans, host_events = ps.split_events(evs)
     assert kernels == [("_march_kernel_forward", 0.02), ("nvjet_sm90_gemm", 0.005)]
-    assert spans == [(10, 30), (40, 45)]
-    assert host_events == [(0, 50, "sample_rays"), (5, 8, "cudaGraphLaunch")]
-    assert device_gaps(spans, host_events, 1)["idle_by_host_ms"] == {"sample_rays": 0.01}
+    assert spans == [(10, 30, "_march_kernel_forward"), (40, 45, "nvjet_sm90_gemm")]
+    assert host_events == [(0, 50, "sample_rays", 0), (5, 8, "cudaGraphLaunch", 0)]
+    split = device_gaps(spans, host_events, 1)
+    assert split["idle_by_host_ms"] == {"sample_rays": 0.01}
+    assert split["idle_by_next_kernel_ms"] == {"nvjet_sm90_gemm": 0.01}
     assert "| `step` | 0.214 |" in md and "| `aten::item` | 0.004 |" in md
     assert "| `step › sample_rays › aten::item` | 0.004 |" in md
+
+
+def test_device_gaps_charge_the_training_thread_and_name_the_kernel_after_each_gap():
+    """A sync another thread sits in (a profiler's, the autograd engine's) is not the step's:
+    the gap goes to the training thread's event (the thread of most events) and the other
+    thread's is counted apart; the kernel that ends each gap is named. Fails if threads are
+    mixed (the gap would be charged to the other thread's later-starting sync)."""
+    from benchmarks.device_gaps import device_gaps, training_thread
+
+    kernels = [(0, 10, "march"), (40, 50, "mlp"), (90, 100, "hash")]
+    host = [
+        (0, 200, "step", 1),
+        (5, 45, "sample_rays", 1),
+        (46, 95, "render", 1),
+        (8, 80, "cudaDeviceSynchronize", 7),  # starts after sample_rays: innermost if mixed
+    ]
+    assert training_thread(host) == 1
+    g = device_gaps(kernels, host, steps=1)
+    # gaps 10-40 (sample_rays; thread 7's sync also running) and 50-90 (render; and the sync)
+    assert g["idle_by_host_ms"] == {
+        "sample_rays": pytest.approx(0.03),
+        "render": pytest.approx(0.04),
+    }
+    assert g["idle_other_threads_ms"] == {"cudaDeviceSynchronize": pytest.approx(0.07)}
+    assert g["idle_by_next_kernel_ms"] == {"hash": pytest.approx(0.04), "mlp": pytest.approx(0.03)}
+    three = device_gaps([(0, 10), (40, 50)], [(0, 60, "step")], steps=1)  # no threads, names
+    assert three["idle_by_host_ms"] == {"step": pytest.approx(0.03)}
+    assert three["idle_other_threads_ms"] == {} and three["idle_by_next_kernel_ms"] == {}
 
 
 def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):
