@@ -36,11 +36,18 @@ def weights(trainer: Trainer) -> dict[str, torch.Tensor]:
     return {k: p.detach().clone() for k, p in trainer.field.named_parameters()}
 
 
-@pytest.mark.parametrize("backend", ["ngp", "vanilla", "ngp-compacted"])
+# hidden cells carved from the third step on (an opaque start, so some samples are hidden)
+CARVED = {"carve_hidden": True, "carve_min_hits": 1, "update_every": 2, "warmup_steps": 0}
+CARVED["density_bias"] = 3.0
+
+
+@pytest.mark.parametrize("backend", ["ngp", "vanilla", "ngp-compacted", "ngp-carved"])
 def test_device_path_takes_the_plain_paths_steps(scene, tmp_path, backend):
-    kw = {}
-    if backend == "ngp-compacted":  # compacted samples (early_stop_eps) in their own buffer
-        backend, kw = "ngp", {"backend_options": {**NGP_TINY, "early_stop_eps": 1e-4}}
+    kw, carved = {}, backend == "ngp-carved"
+    if backend.startswith("ngp-"):  # compacted samples (early_stop_eps) in their own buffer
+        more = CARVED if carved else {}  # and hidden cells carved
+        opts = {**NGP_TINY, "early_stop_eps": 1e-4, **more}
+        backend, kw = "ngp", {"backend_options": opts}
     # one after the other: each trainer seeds the global generator (ray jitter) when built
     plain = make(scene, tmp_path / "plain", "plain", backend, steps=5, **kw)
     a = [plain.step()["loss"] for _ in range(5)]
@@ -54,6 +61,8 @@ def test_device_path_takes_the_plain_paths_steps(scene, tmp_path, backend):
         for h in (plain.history[-1], device.history[-1]):
             assert 0 < h["samples_per_ray"] < h["marched_per_ray"]
         assert device.field.pruned_capacity is not None
+        hidden = device.field.sampler.hidden
+        assert (hidden is not None and bool(hidden.carved.any())) == carved
     wa, wb = weights(plain), weights(device)
     for k in wa:
         assert_same_tensor(wa[k], wb[k], k)

@@ -160,6 +160,8 @@ class NGPField(Field):
         self.aabb = self.aabb.float()
         # The occupancy grid is plain tensors (no gradient): it follows the module's device.
         self.grid.to(self.aabb.device)
+        if self.sampler.hidden is not None:
+            self.sampler.hidden.to(self.aabb.device)
         return self
 
     def pad_legacy(self, t: torch.Tensor) -> torch.Tensor:

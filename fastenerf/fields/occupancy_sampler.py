@@ -18,6 +18,7 @@ import torch
 
 from ..backends import NGPOptions
 from ..config import CylinderConfig
+from ..kernels.hidden_cells import HiddenCells
 from ..kernels.occupancy import OccupancyGrid, default_step_size
 from ..kernels.prune import prune_samples, prune_samples_fixed
 from ..kernels.ray_points import ray_points
@@ -74,6 +75,11 @@ class OccupancySampler:
             or default_step_size(aabb, options.marcher.diagonal_steps),
             device=device,
         )
+        # the training march's carved cells (MarcherOptions.carve_hidden; None: off)
+        self.hidden = None
+        if options.marcher.carve_hidden and self._compaction_set():
+            m = options.marcher
+            self.hidden = HiddenCells(self.grid, m.carve_min_hits, m.carve_refresh)
         self.compaction = None  # compaction_auto's switch (None: fixed by the options)
         if options.marcher.compaction_auto and self._compaction_set():
             self.compaction = CompactionSwitch(options.marcher.compact_below)
@@ -101,7 +107,11 @@ class OccupancySampler:
         )
         if train and self.sample_capacity is not None:
             return self._march_fixed(rays_o, rays_d, cone, march)
-        return march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
+        return march_rays(rays_o, rays_d, self._aabb_host, self._grid_for(train), **march)
+
+    def _grid_for(self, train: bool):
+        """The grid a march reads: the training march's skips the carved cells."""
+        return self.hidden.view() if train and self.hidden is not None else self.grid
 
     def _train_cone(self) -> float:
         opt = self.options.marcher
@@ -129,7 +139,7 @@ class OccupancySampler:
         cap = self.sample_capacity
         if cap.capacity is None or cone != self._capacity_cone:
             # first batch, or the cone changed (the want jumps): size it once, exactly
-            exact = march_rays(rays_o, rays_d, self._aabb_host, self.grid, **march)
+            exact = march_rays(rays_o, rays_d, self._aabb_host, self._grid_for(True), **march)
             cap.reset(len(exact[1]))
             self._capacity_cone = cone
             if self.pruned_capacity is not None:
@@ -142,7 +152,7 @@ class OccupancySampler:
             rays_o,
             rays_d,
             self._aabb_host,
-            self.grid,
+            self._grid_for(True),
             capacity=cap.capacity,
             out=self._fixed_out,
             **march,
@@ -188,6 +198,8 @@ class OccupancySampler:
         x, _ = ray_points(rays_o, rays_d, 0.5 * (t_starts + t_ends), ray_idx, packed_info)
         sigma = density(x)  # every slot, a fixed buffer's padding too: never read
         args = (sigma, packed_info, t_starts, t_ends, opt.early_stop_eps, opt.alpha_threshold)
+        if self.hidden is not None:
+            self.hidden.tally(x, sigma, packed_info, t_starts, t_ends, opt.early_stop_eps)
         if not isinstance(marched, FixedSamples):
             return prune_samples(*args)
         cap = self.pruned_capacity
@@ -222,3 +234,5 @@ class OccupancySampler:
                 threshold=opt.density_threshold,
                 warmup_steps=opt.warmup_steps,
             )
+            if self.hidden is not None:  # not while the field is still fog
+                self.hidden.update(carve=step >= opt.warmup_steps)
