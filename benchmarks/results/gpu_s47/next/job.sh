@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# The next lease's job (../next_gpu.txt), started detached once Warp is staged (copy this
+# folder to .gpu-job, COMMIT set; `bash benchmarks/gpu_start.sh s48` starts it):
+# 0. `profile_step` on plant, blocks and toyset with the default step: each device gap now
+#    charged to the training thread's host events, another thread's counted apart, and the
+#    kernel that ended it named (gpu_s47: the ~0.5 ms/step "at cudaDeviceSynchronize" had no
+#    Python frame or op around it); then blocks and toyset with and without `carve_hidden`
+#    side by side (the step at 1,000 steps, marched and trained samples);
+# 1. runs.txt: `carve_hidden` against the default in 60 s runs on every scene side by side,
+#    then #20 at 2 degrees on plant and shiny (not re-run since the twenty-sixth session).
+# Everything lands in RES/s48 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
+# scenes, BUDGET_S and WARMUP set, and the paths below: a CPU dry run.
+set -u
+HERE=$(cd "$(dirname "$0")" && pwd)
+AFTER=${AFTER:-/var/tmp/after}; DATA=${DATA:-/var/tmp/data}
+RES=${RES:-/var/tmp/res}/s48
+source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, $PY, DEVICE; cd to the tree
+for s in plant blocks toyset; do
+    ready $s
+    $PY -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
+        --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/prof_$s" \
+        > "$RES/prof_$s.log" 2>&1
+    note "profile $s rc $?"
+done
+# compaction is the GPU default, so the variants differ in carve_hidden alone
+for s in blocks toyset; do
+    $PY -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
+        --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/prof_${s}_carve" \
+        --variant 'base={"backend_options": {"carve_hidden": false}}' \
+        --variant 'carve={"backend_options": {"carve_hidden": true}}' \
+        > "$RES/prof_${s}_carve.log" 2>&1
+    note "profile $s carve rc $?"
+done
+WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" \
+    "$(cat "$HERE/COMMIT" 2>/dev/null)"
+note "runs done"
+touch "$RES/all.done"
