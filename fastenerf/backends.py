@@ -76,13 +76,13 @@ class MarcherOptions:
     below this (nearly transparent ones; nerfacc's alpha_thre). 0: keep them all."""
     carve_hidden: bool = False
     """With compaction: the training march skips occupied cells that no training ray saw
-    (every sample marched there in the last grid-update window behind T < early_stop_eps:
-    the inside of a solid), cleared and re-tested every `carve_refresh` updates
+    (every sample marched there since the last clearing behind T < early_stop_eps: the
+    inside of a solid), cleared and re-tested every `carve_refresh` grid updates
     (kernels/hidden_cells.py). Evaluation, the viewer and the mesh march the full grid.
     Without compaction nothing is built; while `compaction_auto` has compaction off nothing is
     counted, so the carved cells stay until the next clearing."""
     carve_min_hits: int = field(default=16, metadata={"min": 1, "max": 1_000_000})
-    """Marched samples a cell needs in one update window before it can be carved."""
+    """Marched samples a cell needs since the last clearing before it can be carved."""
     carve_refresh: int = field(default=8, metadata={"min": 1, "max": 1_000_000})
     """Grid updates between clearings of the carved cells."""
     compaction_auto: bool = False

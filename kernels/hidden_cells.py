@@ -8,18 +8,20 @@ remembers compaction's verdict per cell and lets the training march skip a cell 
 training ray has seen:
 
     hits[c] = marched samples in cell c          seen[c] = those with T >= eps
-    carved  = carved | (hits >= min_hits  and  seen == 0)      (at each grid update)
-    training march: occupied and not carved;  every `refresh` updates carved is cleared
+    carved  = hits >= min_hits  and  seen == 0      (at each grid update)
+    training march: occupied and not carved;  every `refresh` updates all three are cleared
 
 T is the transmittance before the sample (the compositing rule of prune.py, with the same
 float32 product), so a carved cell held only samples that compaction would have dropped for
-every ray that crossed it since the last update. Clearing `carved` every `refresh` updates
-lets a cell that becomes visible (the geometry moved while training) be seen again. Only the
+every ray that crossed it since the last clearing. The counts run from one clearing to the
+next (a carved cell gets no more samples, so its verdict stands until then); clearing them
+every `refresh` updates lets a cell that becomes visible (the geometry moved while training)
+be seen again. Only the
 training march uses the carved bits (`CarvedGrid`): evaluation, the viewer and the mesh read
 the occupancy grid itself, so a solid stays solid there.
 
-Counts are per update window and reset at each update; the tally runs inside the training
-step on fixed-size buffers (no host read, so a captured step replays it).
+The tally runs inside the training step on fixed-size buffers (no host read, so a captured
+step replays it).
 """
 
 from __future__ import annotations
@@ -90,9 +92,9 @@ _TALLY: dict[int, object] = {}
 class HiddenCells:
     """The carved cells of one occupancy grid and the training march's bits without them.
 
-    grid: the occupancy grid; min_hits: marched samples a cell needs in one update window
-    before it can be called hidden (>= 1); refresh: grid updates between clearings of the
-    carved set (>= 1; 1: only the last window's verdict counts).
+    grid: the occupancy grid; min_hits: marched samples a cell needs since the last clearing
+    before it can be called hidden (>= 1); refresh: grid updates between clearings (>= 1; 1:
+    nothing is ever carved).
     """
 
     def __init__(self, grid: OccupancyGrid, min_hits: int = 16, refresh: int = 8):
@@ -137,16 +139,15 @@ class HiddenCells:
 
     @torch.no_grad()
     def update(self, carve: bool = True) -> None:
-        """After a grid update: carve the window's hidden cells (or clear the carved set every
-        `refresh` updates; carve=False: clear it, e.g. while a new field is still fog), reset
-        the counts and pack the training march's bits."""
+        """After a grid update: carve the cells hidden since the last clearing, or clear the
+        counts and the carved set (every `refresh` updates; carve=False: now, e.g. while a new
+        field is still fog); then pack the training march's bits."""
         self.updates += 1
         if not carve or self.updates % self.refresh == 0:
-            self.carved.zero_()
+            for t in (self.carved, self.hits, self.seen):
+                t.zero_()
         else:
-            self.carved |= (self.hits >= self.min_hits) & (self.seen == 0)
-        self.hits.zero_()
-        self.seen.zero_()
+            torch.logical_and(self.hits >= self.min_hits, self.seen == 0, out=self.carved)
         self.pack()
 
     def pack(self) -> None:
