@@ -5,7 +5,8 @@
 #    charged to the training thread's host events, another thread's counted apart, and the
 #    kernel that ended it named (gpu_s47: the ~0.5 ms/step "at cudaDeviceSynchronize" had no
 #    Python frame or op around it); then blocks and toyset with and without `carve_hidden`
-#    side by side (the step at 1,000 steps, marched and trained samples);
+#    side by side (the step at 1,000 steps, marched and trained samples); toyset plain, with
+#    64 windows and refined (#20's +17.3 % step there);
 # 1. runs.txt: `carve_hidden` against the default in 60 s runs on every scene side by side,
 #    then #20 at 2 degrees on plant and shiny (not re-run since the twenty-sixth session).
 # Everything lands in RES/s48 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
@@ -31,6 +32,13 @@ for s in blocks toyset; do
         > "$RES/prof_${s}_carve.log" 2>&1
     note "profile $s carve rc $?"
 done
+# #20's refined step on the mesh scene (+17.3 % in gpu_s47's 60 s runs, target 15 %) beside
+# the plain step with its batch (64 windows) and the default (16): where the extra time goes
+$PY -m benchmarks.profile_step --scene "$DATA/toyset" --device "$DEVICE" \
+    --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/prof_toyset_ref" \
+    --variant 'plain={"train": {}}' --variant 'w64={"train": {"windows_per_step": 64}}' \
+    --variant 'ref={"train": {"refine_poses": true}}' > "$RES/prof_toyset_ref.log" 2>&1
+note "profile toyset ref rc $?"
 WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" \
     "$(cat "$HERE/COMMIT" 2>/dev/null)"
 note "runs done"
