@@ -7,8 +7,10 @@
 #    Python frame or op around it); then blocks and toyset with and without `carve_hidden`
 #    side by side (the step at 1,000 steps, marched and trained samples); toyset plain, with
 #    64 windows and refined (#20's +17.3 % step there);
-# 1. runs.txt: `carve_hidden` against the default in 60 s runs on every scene side by side,
-#    then #20 at 2 degrees on plant and shiny (not re-run since the twenty-sixth session).
+#    blocks and toyset with CUDA's launch queues 4x (CUDA_SCALE_LAUNCH_QUEUES);
+# 1. runs.txt: `carve_hidden` against the default in 60 s runs on every scene side by side;
+#    runs_q4x.txt: blocks and toyset with the 4x queues; runs_ref.txt: #20 at 2 degrees on
+#    plant and shiny (not re-run since the twenty-sixth session).
 # Everything lands in RES/s48 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
 # scenes, BUDGET_S and WARMUP set, and the paths below: a CPU dry run.
 set -u
@@ -39,7 +41,19 @@ $PY -m benchmarks.profile_step --scene "$DATA/toyset" --device "$DEVICE" \
     --variant 'plain={"train": {}}' --variant 'w64={"train": {"windows_per_step": 64}}' \
     --variant 'ref={"train": {"refine_poses": true}}' > "$RES/prof_toyset_ref.log" 2>&1
 note "profile toyset ref rc $?"
-WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" \
-    "$(cat "$HERE/COMMIT" 2>/dev/null)"
+# CUDA's launch queues 4x longer (read when CUDA starts, so per process): the host blocks in
+# cudaGraphLaunch at "Command Buffer Full" while the device idles (gpu_s47: 0.38 ms/step on
+# blocks, 0.47 on toyset); llama.cpp removed the same bubbles this way
+for s in blocks toyset; do
+    CUDA_SCALE_LAUNCH_QUEUES=4x $PY -m benchmarks.profile_step --scene "$DATA/$s" \
+        --device "$DEVICE" --warmup "${WARMUP:-1000}" --steps 50 --quiet \
+        --out "$RES/prof_${s}_q4x" > "$RES/prof_${s}_q4x.log" 2>&1
+    note "profile $s q4x rc $?"
+done
+commit=$(cat "$HERE/COMMIT" 2>/dev/null)
+WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" "$commit"
+CUDA_SCALE_LAUNCH_QUEUES=4x WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs_q4x" \
+    "$HERE/runs_q4x.txt" "$commit"
+WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs_ref" "$HERE/runs_ref.txt" "$commit"
 note "runs done"
 touch "$RES/all.done"
