@@ -31,7 +31,7 @@ import warp as wp
 
 from .common import fast_view, init, launch
 from .composite import optical_depth
-from .occupancy import OccupancyGrid, _pack_bits, _pack_blocks, locate_func
+from .occupancy import OccupancyGrid, cell_id, locate_func
 
 
 def _tally_kernel(n_cascades: int):
@@ -65,7 +65,7 @@ def _tally_kernel(n_cascades: int):
             c = locate(x[s], center, inv_half, res)
             gid = wp.int32(-1)
             if c[0] >= 0:
-                gid = ((c[0] * res + c[1]) * res + c[2]) * res + c[3]
+                gid = cell_id(c, res)
             if gid != cell:
                 if cell >= 0:
                     wp.atomic_add(hits, cell, run)
@@ -153,13 +153,8 @@ class HiddenCells:
     def pack(self) -> None:
         """The training bits: the grid's occupancy without the carved cells (in place, so a
         captured march keeps reading them)."""
-        g = self.grid
-        density = torch.where(self.carved, -1.0, g.density.view(-1))
-        launch(_pack_bits, g.n_cells // 8, density, [density, g.threshold, self.bitfield])
-        if g.block > 1:
-            f = g.block
-            args = [self.bitfield, g.resolution, f, self.blocks]
-            launch(_pack_blocks, g.n_cells // f**3, density, args)
+        density = torch.where(self.carved, -1.0, self.grid.density.view(-1))
+        self.grid.pack_into(density, self.bitfield, self.blocks)
 
     def to(self, device) -> HiddenCells:
         """Move the counts and bits to `device` (the grid's, after the field moved)."""

@@ -76,11 +76,17 @@ def cell_lo(c: wp.vec4i, center: wp.vec3, half: wp.vec3, res: int) -> wp.vec3:
 
 
 @wp.func
+def cell_id(c: wp.vec4i, res: int) -> int:
+    """Flat id of cell c = (level, ix, iy, iz), level >= 0 (`cell_of_id`'s inverse)."""
+    return ((c[0] * res + c[1]) * res + c[2]) * res + c[3]
+
+
+@wp.func
 def bit_at(bitfield: wp.array(dtype=wp.uint8), c: wp.vec4i, res: int) -> int:
     """Occupancy bit (0/1) of cell c = (level, ix, iy, iz); level < 0 reads as empty."""
     if c[0] < 0:
         return 0
-    gid = ((c[0] * res + c[1]) * res + c[2]) * res + c[3]
+    gid = cell_id(c, res)
     return (int(bitfield[gid >> 3]) >> (gid & 7)) & 1
 
 
@@ -383,13 +389,18 @@ class OccupancyGrid:
             launch(kernel, dim, self.density, [*inputs, *[x.view(-1) for x in outputs]])
 
     def _pack(self) -> None:
-        self._launch(
-            _pack_bits, self.n_cells // 8, [self.density.view(-1), self.threshold], [self.bitfield]
-        )
+        self.pack_into(self.density, self.bitfield, self.blocks)
+
+    def pack_into(self, density: torch.Tensor, bitfield: torch.Tensor, blocks: torch.Tensor):
+        """Pack `density` ((C, R**3) or (C·R**3,) float32, 1/world units; -1 never occupied)
+        against the grid's threshold into `bitfield` and `blocks` (this grid's layout), in
+        place: the grid's own bits, or another set a march reads (hidden_cells.py)."""
+        self._launch(_pack_bits, self.n_cells // 8, [density.view(-1), self.threshold], [bitfield])
         if self.block > 1:
             f = self.block
-            args = [self.bitfield, self.resolution, f]
-            self._launch(_pack_blocks, self.n_cells // f**3, args, [self.blocks])
+            self._launch(
+                _pack_blocks, self.n_cells // f**3, [bitfield, self.resolution, f], [blocks]
+            )
 
     # -- queries ----------------------------------------------------------------------------
     def cell_points(self, ids: torch.Tensor, seed: int | None = None) -> torch.Tensor:
