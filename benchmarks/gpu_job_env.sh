@@ -5,6 +5,8 @@
 # PYTHONPATH, $PY; the working folder becomes the tree) and gives the job
 #   note TEXT      a timestamped line in RES/progress.log (what gpu_poll.sh prints)
 #   ready SCENE    waits up to 900 s for DATA/SCENE.ready (a later call copies the scene in)
+#   profile NAME SCENE [ARGS]   `benchmarks.profile_step` of DATA/SCENE at WARMUP (1000) steps,
+#                  50 profiled, into RES/NAME (its log RES/NAME.log), then a progress note
 # DEVICE (cuda unless set) is exported for the job's commands.
 mkdir -p "$RES"
 [ -f /var/tmp/gpu-warp/activate.sh ] && source /var/tmp/gpu-warp/activate.sh
@@ -12,4 +14,11 @@ OUT=$RES source "$AFTER/benchmarks/gpu_env.sh"
 DEVICE=${DEVICE:-cuda}; export DEVICE
 note() { echo "[$(date +%T)] $*" >> "$RES/progress.log"; }
 ready() { local n=0; while [ ! -e "$DATA/$1.ready" ] && [ $n -lt 450 ]; do sleep 2; n=$((n + 1)); done; }
+profile() {
+    local name=$1 scene=$2; shift 2
+    ready "$scene"
+    $PY -m benchmarks.profile_step --scene "$DATA/$scene" --device "$DEVICE" \
+        --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/$name" "$@" > "$RES/$name.log" 2>&1
+    note "profile $name rc $?"
+}
 note "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)"

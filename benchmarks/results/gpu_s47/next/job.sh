@@ -17,39 +17,23 @@ set -u
 HERE=$(cd "$(dirname "$0")" && pwd)
 AFTER=${AFTER:-/var/tmp/after}; DATA=${DATA:-/var/tmp/data}
 RES=${RES:-/var/tmp/res}/s48
-source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, $PY, DEVICE; cd to the tree
-for s in plant blocks toyset; do
-    ready $s
-    $PY -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
-        --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/prof_$s" \
-        > "$RES/prof_$s.log" 2>&1
-    note "profile $s rc $?"
-done
+source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, profile, $PY, DEVICE; cd to the tree
+for s in plant blocks toyset; do profile "prof_$s" "$s"; done
 # compaction is the GPU default, so the variants differ in carve_hidden alone
 for s in blocks toyset; do
-    $PY -m benchmarks.profile_step --scene "$DATA/$s" --device "$DEVICE" \
-        --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/prof_${s}_carve" \
+    profile "prof_${s}_carve" "$s" \
         --variant 'base={"backend_options": {"carve_hidden": false}}' \
-        --variant 'carve={"backend_options": {"carve_hidden": true}}' \
-        > "$RES/prof_${s}_carve.log" 2>&1
-    note "profile $s carve rc $?"
+        --variant 'carve={"backend_options": {"carve_hidden": true}}'
 done
 # #20's refined step on the mesh scene (+17.3 % in gpu_s47's 60 s runs, target 15 %) beside
 # the plain step with its batch (64 windows) and the default (16): where the extra time goes
-$PY -m benchmarks.profile_step --scene "$DATA/toyset" --device "$DEVICE" \
-    --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/prof_toyset_ref" \
-    --variant 'plain={"train": {}}' --variant 'w64={"train": {"windows_per_step": 64}}' \
-    --variant 'ref={"train": {"refine_poses": true}}' > "$RES/prof_toyset_ref.log" 2>&1
-note "profile toyset ref rc $?"
+profile prof_toyset_ref toyset --variant 'plain={"train": {}}' \
+    --variant 'w64={"train": {"windows_per_step": 64}}' \
+    --variant 'ref={"train": {"refine_poses": true}}'
 # CUDA's launch queues 4x longer (read when CUDA starts, so per process): the host blocks in
 # cudaGraphLaunch at "Command Buffer Full" while the device idles (gpu_s47: 0.38 ms/step on
 # blocks, 0.47 on toyset); llama.cpp removed the same bubbles this way
-for s in blocks toyset; do
-    CUDA_SCALE_LAUNCH_QUEUES=4x $PY -m benchmarks.profile_step --scene "$DATA/$s" \
-        --device "$DEVICE" --warmup "${WARMUP:-1000}" --steps 50 --quiet \
-        --out "$RES/prof_${s}_q4x" > "$RES/prof_${s}_q4x.log" 2>&1
-    note "profile $s q4x rc $?"
-done
+for s in blocks toyset; do CUDA_SCALE_LAUNCH_QUEUES=4x profile "prof_${s}_q4x" "$s"; done
 commit=$(cat "$HERE/COMMIT" 2>/dev/null)
 WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" "$commit"
 CUDA_SCALE_LAUNCH_QUEUES=4x WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs_q4x" \
