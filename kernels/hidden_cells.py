@@ -3,7 +3,8 @@
 On a solid object the occupancy grid keeps every cell inside it (the density is high there),
 so a training ray marches the whole interior after its first surface. Compaction
 (kernels/prune.py) then drops those samples again, after the density network has run on
-every one of them: on an object scene most marched samples are of this kind. This module
+every one of them (on blocks, H200: 142.8 marched a ray, 42.8 kept; how many of the dropped
+ones lie inside solids is what the option's measurement says). This module
 remembers compaction's verdict per cell and lets the training march skip a cell that no
 training ray has seen:
 
@@ -16,15 +17,16 @@ float32 product), so a carved cell held only samples that compaction would have 
 every ray that crossed it since the last clearing. The counts run from one clearing to the
 next (a carved cell gets no more samples, so its verdict stands until then); clearing them
 every `refresh` updates lets a cell that becomes visible (the geometry moved while training)
-be seen again. Only the
-training march uses the carved bits (`CarvedGrid`): evaluation, the viewer and the mesh read
-the occupancy grid itself, so a solid stays solid there.
+be seen again. Only the training march uses the carved bits (`CarvedGrid`): evaluation, the
+viewer and the mesh read the occupancy grid itself, so a solid stays solid there.
 
 The tally runs inside the training step on fixed-size buffers (no host read, so a captured
 step replays it).
 """
 
 from __future__ import annotations
+
+import functools
 
 import torch
 import warp as wp
@@ -34,6 +36,7 @@ from .composite import optical_depth
 from .occupancy import OccupancyGrid, cell_id, locate_func
 
 
+@functools.cache
 def _tally_kernel(n_cascades: int):
     locate = locate_func(max(n_cascades, 1))
 
@@ -86,9 +89,6 @@ def _tally_kernel(n_cascades: int):
     return tally
 
 
-_TALLY: dict[int, object] = {}
-
-
 class HiddenCells:
     """The carved cells of one occupancy grid and the training march's bits without them.
 
@@ -120,8 +120,6 @@ class HiddenCells:
         g = self.grid
         if packed_info.shape[0] == 0:
             return
-        if g.n_cascades not in _TALLY:
-            _TALLY[g.n_cascades] = _tally_kernel(g.n_cascades)
         args = [
             fast_view(x.float().contiguous(), wp.vec3),
             sigmas.float().contiguous(),
@@ -135,7 +133,7 @@ class HiddenCells:
             self.hits,
             self.seen,
         ]
-        launch(_TALLY[g.n_cascades], packed_info.shape[0], sigmas, args)
+        launch(_tally_kernel(g.n_cascades), packed_info.shape[0], sigmas, args)
 
     @torch.no_grad()
     def update(self, carve: bool = True) -> None:
