@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import bisect
 import re
+from collections import Counter
 
 GAP_MIN_US = 5.0
 """Gaps shorter than this are a launch's own latency, not the host falling behind."""
@@ -71,10 +72,8 @@ def path_name(name: str) -> str | None:
 def training_thread(host: list[tuple]) -> object:
     """The thread of most host events (start, end, name, thread): the one that runs the
     steps (a profile also holds the autograd engine's, the profiler's own threads)."""
-    counts: dict[object, int] = {}
-    for h in host:
-        counts[h[3]] = counts.get(h[3], 0) + 1
-    return max(counts, key=counts.__getitem__) if counts else None
+    top = Counter(h[3] for h in host).most_common(1)
+    return top[0][0] if top else None
 
 
 def device_gaps(
