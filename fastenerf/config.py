@@ -166,6 +166,10 @@ class TrainConfig:
     win_max (default: the reference's), and the corrections learn from windows up to
     refine_win_max (default: win_max) throughout. None: off (`pose_settle`), except on a
     GPU run of ngp's fast preset on a synthetic scene with win_max unset: SETTLE_PX (0.3)."""
+    refine_freeze: bool = False
+    """Stop learning the poses once they settle (refine_settle_px): the corrections stay as
+    they are and the rays leave the autograd graph, so the rest of the run no longer pays for
+    the pose gradient (the hash grid's position gradient, the rays' backward)."""
     settle_win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
     """The field's longest window once the poses settle (refine_settle_px), views. Default:
     the fast preset's long windows, FAST_WINDOW_FRACTION of the loop (at least win_max)."""
@@ -255,6 +259,8 @@ class TrainConfig:
         _check(ok, where, "refine_shared", "needs refine_poses (it shapes the pose correction)")
         ok = self.refine_poses or self.refine_settle_px is None
         _check(ok, where, "refine_settle_px", "needs refine_poses (it watches the corrections)")
+        ok = self.refine_poses or not self.refine_freeze
+        _check(ok, where, "refine_freeze", "needs refine_poses (it stops the pose learning)")
         ok = self.settle_win_max is None or self.refine_settle_px is not None
         _check(ok, where, "settle_win_max", "needs refine_settle_px (when the windows lengthen)")
         k, shared = self.refine_knots, self.refine_shared or self.refine_shared_until > 0
@@ -289,6 +295,9 @@ class TrainConfig:
                 c.log_eps = 1e-5 if real else 0.1
         cpu_ngp = c.backend == "ngp" and not str(device).startswith("cuda")
         c._resolve_windows(scene.n_views, real, cpu_ngp)
+        ok = not c.refine_freeze or c.refine_settle_px is not None
+        why = "needs refine_settle_px here (it says when the poses settled), e.g. 0.3"
+        _check(ok, "train config", "refine_freeze", why)
         if c.neg_ratio is None:
             c.neg_ratio = 0.05 if real else 0.1
         if c.distortion_weight is None:

@@ -141,11 +141,15 @@ class PoseCalibration:
         self.c2f: float | None = None  # fraction of the coarse-to-fine schedule done
         self.sharing = False  # the poses share one correction now (refine_shared_until)
         self.lr = 0.0  # this step's lr, on the host (the device may hold a copy)
+        self.frozen = False  # the poses settled and refine_freeze stopped their learning
 
     def schedule(self, progress: float) -> bool:
         """The lr and the shared phase at training `progress` in [0, 1]; returns whether the
-        shared phase ended now (the caller then calls `forget_moments`)."""
-        self.lr = pose_lr(self.cfg, progress)
+        shared phase ended now (the caller then calls `forget_moments`). From the step after
+        the poses settled, refine_freeze holds the lr at 0 (`frozen`)."""
+        settled = self.settle is not None and self.settle.settled_at is not None
+        self.frozen = self.cfg.refine_freeze and settled
+        self.lr = 0.0 if self.frozen else pose_lr(self.cfg, progress)
         was = self.sharing
         self.sharing = progress < self.cfg.refine_shared_until
         return was and not self.sharing
@@ -176,6 +180,13 @@ class PoseCalibration:
         """rays_o, rays_d (2B, 3) of a batch through the corrected poses; keeps its rows."""
         if batch.pose_idx is None:
             raise ValueError("SelfCalibration: the sampler was built without with_poses")
+        if self.frozen:  # no pose gradient: the field skips its position gradient too
+            self.grad_rays = None
+            with torch.no_grad():
+                rays_o, rays_d, self.seen = self.refiner.rays_and_rows(
+                    batch.dirs, batch.pose_idx, batch.rays_d
+                )
+            return rays_o, rays_d
         # the batch's own rays: what the fused path returns on uncorrected rows (δ = 0)
         rays_o, rays_d, self.seen = self.refiner.rays_and_rows(
             batch.dirs, batch.pose_idx, batch.rays_d
@@ -258,4 +269,5 @@ class PoseCalibration:
             "gauge": self.refiner.gauge,
             "corrections": "world-frame [rotation vector (rad), shift (world units)]",
             **({} if self.settle is None else {"settled_at": self.settle.settled_at}),
+            "frozen": self.frozen,
         }

@@ -112,10 +112,13 @@ class SelfCalibration:
 
     def graph_key(self) -> tuple:
         """What a captured step bakes in of the calibration: whether the poses step (their lr
-        is 0 before refine_start; the row Adam is then not launched at all) and whether they
-        share one correction (refine_shared_until)."""
+        is 0 before refine_start; the row Adam is then not launched at all), whether they
+        share one correction (refine_shared_until) and whether they are frozen (refine_freeze:
+        the rays then carry no gradient)."""
         pc = self.pose_cal
-        return (pc is not None and pc.lr > 0, pc is not None and pc.sharing)
+        if pc is None:
+            return (False, False, False)
+        return (pc.lr > 0, pc.sharing, pc.frozen)
 
     def lr_as_tensors(self, device: torch.device) -> None:
         """Learning rates as device tensors a captured step reads (`before_step` fills them)."""

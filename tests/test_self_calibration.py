@@ -398,6 +398,58 @@ def test_a_run_whose_poses_settle_lengthens_its_windows_and_resumes_exactly(
     assert lengths[0] == c.win_max and lengths[-1] == c.settle_win_max
 
 
+@pytest.mark.parametrize("freeze", [False, True])
+def test_refine_freeze_stops_the_pose_learning_once_the_poses_settle(scene, tmp_path, freeze):
+    """refine_freeze: from the step after the poses settled (here the second look, step 2 of
+    40) the corrections stay exactly as they were, the rays reach the field without a
+    gradient, the field still learns and the graph key says so; without it the corrections
+    go on moving. A run checkpointed after the switch resumes frozen, bit for bit."""
+    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, steps=40)
+    cfg.update(perturb=PerturbConfig(pose_error_deg=1.0), refine_gate=0.0, refine_settle_px=1e3)
+    tr = Trainer(scene, tiny(**cfg, refine_freeze=freeze), tmp_path / "r")
+    grads, render = [], tr.field.render
+
+    def spy(rays_o, *args, **kw):
+        grads.append(rays_o.requires_grad)
+        return render(rays_o, *args, **kw)
+
+    tr.field.render = spy
+    deltas, fields = [], []
+    for _ in range(8):
+        tr.step()
+        deltas.append(tr.selfcal.poses.delta.detach().clone())
+        fields.append(field_state(tr))
+    pc = tr.selfcal.pose_cal
+    assert pc.settle.settled_at == pytest.approx(0.05) and pc.frozen is freeze
+    moved = [not torch.equal(a, b) for a, b in zip(deltas[2:-1], deltas[3:], strict=True)]
+    assert moved == [not freeze] * 5
+    assert grads[:3] == [True] * 3 and grads[3:] == [not freeze] * 5
+    assert tr.selfcal.graph_key() == (not freeze, False, freeze)
+    w = [k for k in fields[0] if fields[0][k].is_floating_point()]
+    assert any(not torch.equal(fields[-2][k], fields[-1][k]) for k in w)  # the field learns
+    if not freeze:
+        return
+    whole, resumed = whole_and_resumed(scene, {**cfg, "refine_freeze": True}, tmp_path, 5)
+    assert resumed.selfcal.pose_cal.frozen
+    assert torch.equal(whole.selfcal.poses.delta, deltas[-1])
+    assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
+    a, r = field_state(whole), field_state(resumed)
+    assert all(torch.equal(a[k], r[k]) for k in a)
+    conf = json.loads((tmp_path / "whole" / "config.json").read_text())
+    assert conf["self_calibration"]["poses"]["frozen"] is True
+
+
+def test_refine_freeze_needs_the_poses_refined_and_a_settle_tolerance(scene):
+    """One-line errors naming the key: without refine_poses (the config's own check) and
+    where nothing says when the poses settled (a CPU run leaves refine_settle_px off)."""
+    with pytest.raises(InputError, match="'refine_freeze' needs refine_poses"):
+        tiny(refine_freeze=True).validate()
+    with pytest.raises(InputError, match="'refine_freeze' needs refine_settle_px"):
+        tiny(refine_poses=True, refine_freeze=True).resolved(scene.config, "cpu")
+    c = tiny(refine_poses=True, refine_freeze=True, refine_settle_px=0.3)
+    assert c.resolved(scene.config, "cpu").refine_freeze
+
+
 @pytest.mark.parametrize("refine_win_max", [None, 2])
 def test_the_trainer_hands_the_field_the_rays_poses_learn_from(scene, tmp_path, refine_win_max):
     """Every training render gets the calibration's grad_rays: with refine_win_max the short
@@ -825,7 +877,7 @@ def test_shared_until_moves_every_pose_as_one_then_each_its_own(ball, until):
     assert float(d.abs().max()) > 0
     spread = float((d - d[:1]).abs().max())
     assert (spread == 0.0) if until == 1.0 else (spread > 0.0)
-    assert cal.graph_key() == (True, until == 1.0)
+    assert cal.graph_key() == (True, until == 1.0, False)
 
 
 def test_shared_phase_moments_are_forgotten_at_the_switch(ball):
