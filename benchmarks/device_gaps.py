@@ -28,6 +28,8 @@ PATH_SEP = " › "
 REPO_DIRS = ("fastenerf", "kernels", "benchmarks")
 """This repository's top-level folders: with Python calls profiled (`profile_step --stacks`),
 a path keeps the calls in them and drops the libraries' own (torch's, Warp's)."""
+LEAD_IN = 4
+"""Host events named before a sync call a gap began in (`lead_in`): what made the call."""
 PY_FRAME = re.compile(r"^(?P<path>\S+)\((?P<line>\d+)\): (?P<func>.+)$")
 
 
@@ -45,11 +47,24 @@ def merge_intervals(spans: list[tuple[float, float]]) -> list[tuple[float, float
 def containing(host: list[tuple[float, float, str]], starts: list[float], t: float) -> list[str]:
     """The names of the host events (start, end, name) that contain time t, outermost first
     (by start): `host` sorted by start, `starts` its start times."""
+    return [h[2] for h in containing_events(host, starts, t)]
+
+
+def containing_events(host: list[tuple], starts: list[float], t: float) -> list[tuple]:
+    """`containing`'s events themselves, outermost first."""
     i = bisect.bisect_right(starts, t) - 1
-    names = [
-        host[j][2] for j in range(i, max(-1, i - SCAN_BACK), -1) if host[j][0] <= t < host[j][1]
-    ]
-    return names[::-1]
+    found = [host[j] for j in range(i, max(-1, i - SCAN_BACK), -1) if host[j][0] <= t < host[j][1]]
+    return found[::-1]
+
+
+def lead_in(host: list[tuple], starts: list[float], t: float, n: int = LEAD_IN) -> str:
+    """The names of the last `n` host events that ended by time t (the calls made just
+    before one that began at t), oldest first, joined by PATH_SEP; Python calls
+    (`--stacks`) named as in a path, a library's left out."""
+    i = bisect.bisect_right(starts, t) - 1
+    done = [host[j] for j in range(i, max(-1, i - SCAN_BACK), -1) if host[j][1] <= t]
+    names = [path_name(h[2]) for h in sorted(done, key=lambda h: h[1])]
+    return PATH_SEP.join(x[:60] for x in [x for x in names if x is not None][-n:]) or "none"
 
 
 def path_name(name: str) -> str | None:
@@ -93,7 +108,8 @@ def device_gaps(
     same by the PATH_DEPTH innermost containing events, outer first; idle_other_threads_ms:
     the same by the innermost event of another thread running at the gap's start (a sync
     there is not the step's), and idle_by_next_kernel_ms: by the kernel that ended the gap
-    (what the device waited to start).
+    (what the device waited to start); idle_by_sync_lead_in_ms: the gaps that began in a
+    sync call (`...Synchronize`), by that call and the LEAD_IN host events before it.
     """
     host = sorted((h if len(h) > 3 else (*h, None) for h in host), key=lambda h: (h[0], h[1]))
     main = training_thread(host)
@@ -104,10 +120,14 @@ def device_gaps(
     by_path: dict[str, float] = {}
     by_other: dict[str, float] = {}
     by_next: dict[str, float] = {}
+    by_lead: dict[str, float] = {}
     starts, other_starts = [h[0] for h in mine], [h[0] for h in others]
     for (g0, g1), nxt in zip(gaps, after, strict=True):
-        names = containing(mine, starts, g0) or ["no host event"]
+        inside = containing_events(mine, starts, g0)
+        names = [h[2] for h in inside] or ["no host event"]
         _add(by, names[-1], g1 - g0)
+        if names[-1].endswith("Synchronize"):  # a wait on the device: what led to it
+            _add(by_lead, f"{names[-1]} after {lead_in(mine, starts, inside[-1][0])}", g1 - g0)
         kept = [p for p in map(path_name, names) if p is not None] or names[-1:]
         _add(by_path, PATH_SEP.join(n[:80] for n in kept[-PATH_DEPTH:]), g1 - g0)
         if other := containing(others, other_starts, g0):
@@ -128,6 +148,7 @@ def device_gaps(
         "idle_by_path_ms": ranked(by_path, 250),
         "idle_other_threads_ms": ranked(by_other, 100),
         "idle_by_next_kernel_ms": ranked(by_next, 100),
+        "idle_by_sync_lead_in_ms": ranked(by_lead, 300),
     }
 
 

@@ -5,7 +5,8 @@
 #
 # Waits up to SECONDS for RESULTS/all.done (or every RESULTS/*/all.done), prints the end of the
 # progress logs, then packs RESULTS' JSON, JSON lines (the runs' metrics.jsonl: samples marched
-# and used, per logged step), Markdown and logs (no checkpoints, no partial.tgz)
+# and used, per logged step), gzipped traces (profile_step --trace), Markdown and logs (no
+# checkpoints, no partial.tgz)
 # into $OUT/res.tgz, the device tool's return folder. Run it back to back, each call within
 # 30 s of the last, until the list is done.
 set -u
@@ -23,6 +24,6 @@ done_yet() {
 while ! done_yet && [ "$(date +%s)" -lt "$end" ]; do sleep 5; done
 tail -n 6 "$RESULTS"/progress.log "$RESULTS"/*/progress.log 2>/dev/null
 (cd "$(dirname "$RESULTS")" && find "$(basename "$RESULTS")" -type f \( -name '*.json' \
-    -o -name '*.jsonl' -o -name '*.md' -o -name '*.log' -o -name '*.txt' -o -name all.done \) -print0 |
+    -o -name '*.jsonl' -o -name '*.json.gz' -o -name '*.md' -o -name '*.log' -o -name '*.txt' -o -name all.done \) -print0 |
     tar czf "$OUT/res.tgz" --null -T -)
 done_yet && echo "gpu_poll: all done" || echo "gpu_poll: still running"

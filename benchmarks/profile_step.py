@@ -2,7 +2,7 @@
 
     python -m benchmarks.profile_step --scene DIR [--backend ngp] [--preset fast] \
         [--warmup 200] [--steps 50] [--device cuda] [--variant NAME[=JSON]] [--threads N] \
-        [--stacks] [--out OUT]
+        [--stacks] [--trace] [--out OUT]
 
 The trainer runs with one hook (`ProfileSteps`): `--warmup` steps first (kernel compilation,
 occupancy-grid warm-up, the allocator's pools), then `--steps` steps timed plainly and
@@ -29,7 +29,9 @@ times, each variant is profiled in turn (its run in OUT/NAME) and the report put
 side first (one lease's call profiles a plain and a refined step, say).
 
 Outputs in OUT: profile_step.json and profile_step.md (the table for benchmarks/RESULTS.md);
-with several variants the JSON's "variants" holds one result each.
+with several variants the JSON's "variants" holds one result each. `--trace`: the profiled
+steps' events as a Chrome trace too (the run folder's trace.json.gz, chrome://tracing or
+Perfetto), for what the tables cannot name; keep --steps small, a trace is ~1 MB a step.
 """
 
 from __future__ import annotations
@@ -118,8 +120,15 @@ class ProfileSteps(Hook):
     """After `warmup` steps, times `steps` steps plainly, then `steps` more under
     torch.profiler, then stops the run; `result` holds the per-step breakdown."""
 
-    def __init__(self, warmup: int, steps: int, progress: bool = True, stacks: bool = False):
-        self.warmup, self.steps, self.stacks = warmup, steps, stacks
+    def __init__(
+        self,
+        warmup: int,
+        steps: int,
+        progress: bool = True,
+        stacks: bool = False,
+        trace: Path | None = None,
+    ):
+        self.warmup, self.steps, self.stacks, self.trace = warmup, steps, stacks, trace
         self.phase = "warmup"
         self.count = 0
         self.wall: list[float] = []
@@ -175,6 +184,8 @@ class ProfileSteps(Hook):
         elif self.phase == "profiled":
             self.wall = [(self._clock(trainer) - self._last) / self.steps] * self.steps
             self.prof.__exit__(None, None, None)
+            if self.trace is not None:
+                write_trace(self.prof, self.trace)
             self.result = breakdown(self.prof, trainer.device, self.wall, self.plain_ms)
             self.captures.append(self._captures(trainer))
             c = self.captures
@@ -225,6 +236,23 @@ class ProfileSteps(Hook):
             self.prof.__exit__(None, None, None)
         elif self.phase == "syncs":  # stopped early: the wrapped entry points restored
             self._watch_syncs(trainer, False)
+
+
+def write_trace(prof, path: Path) -> None:
+    """The profile's events as a gzipped Chrome trace at `path`, written atomically."""
+    import gzip
+    import os
+    import shutil
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=path.parent) as tmp:
+        raw = Path(tmp) / "trace.json"
+        prof.export_chrome_trace(str(raw))
+        packed = Path(tmp) / path.name
+        with raw.open("rb") as src, gzip.open(packed, "wb", compresslevel=6) as dst:
+            shutil.copyfileobj(src, dst)
+        os.replace(packed, path)
 
 
 def breakdown(prof, dev: torch.device, wall: list[float], plain_ms: float) -> dict[str, Any]:
@@ -385,6 +413,7 @@ def _waits_lines(res: dict) -> list[str]:
             ("idle_by_path_ms", "host events at the gap, outer › inner"),
             ("idle_other_threads_ms", "another thread's host event at the gap (not the step's)"),
             ("idle_by_next_kernel_ms", "kernel that ended the gap"),
+            ("idle_by_sync_lead_in_ms", "sync call at the gap, after the host events before it"),
         ]
         for key, head in tables:
             if g.get(key):
@@ -423,7 +452,10 @@ def profile_one(scene, args: argparse.Namespace, device, run_dir: Path, variant)
     else:
         cfg = make_config(args.backend, args.preset, 300.0, str(device))
         trainer = Trainer(scene, cfg, run_dir)
-    hook = ProfileSteps(args.warmup, args.steps, progress=not args.quiet, stacks=args.stacks)
+    trace = run_dir / "trace.json.gz" if args.trace else None
+    hook = ProfileSteps(
+        args.warmup, args.steps, progress=not args.quiet, stacks=args.stacks, trace=trace
+    )
     trainer.run(hooks=[hook])
     if hook.result is None:
         raise InputError(f"the run ended after {trainer.step_count} steps, before the profile")
@@ -525,6 +557,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="record Python calls in the profile, so each device gap's path names the line "
         "of this repository it began in (slows the profiled host much more: for where, not "
         "how much)",
+    )
+    p.add_argument(
+        "--trace",
+        action="store_true",
+        help="also write the profiled steps as a Chrome trace (RUN/trace.json.gz; ~1 MB a step)",
     )
 
 

@@ -313,9 +313,19 @@ def test_profile_step_names_every_stage_on_cpu(tiny_scene, tmp_path):
     md = (out / "profile_step.md").read_text()
     assert "Explicit synchronisations per step: 0.00 (at none)." in md
     # with Python calls recorded the stages are still the step's own
-    assert ps.main(argv + ["--out", str(tmp_path / "stacks"), "--quiet", "--stacks"]) == 0
+    stacks = ["--quiet", "--stacks", "--trace"]
+    assert ps.main(argv + ["--out", str(tmp_path / "stacks"), *stacks]) == 0
     stacked = json.loads((tmp_path / "stacks" / "profile_step.json").read_text())
     assert stacked["host_ms"]["render"] > 0 and stacked["host_ms"]["render"] < stacked["wall_ms"]
+    # --trace: the profiled steps' events, a Chrome trace (gzipped) holding the stages
+    import gzip
+
+    trace = json.loads(
+        gzip.decompress((tmp_path / "stacks" / "run" / "trace.json.gz").read_bytes())
+    )
+    names = {e.get("name") for e in trace["traceEvents"]}
+    assert {"render", "sample_rays"} <= names
+    assert not (out / "run" / "trace.json.gz").exists()  # only when asked
 
 
 def test_mlp_widths_times_the_padded_colour_mlp_beside_the_unpadded_on_cpu(tmp_path, capsys):
@@ -521,6 +531,30 @@ def test_device_gaps_charge_the_training_thread_and_name_the_kernel_after_each_g
     three = device_gaps([(0, 10), (40, 50)], [(0, 60, "step")], steps=1)  # no threads, names
     assert three["idle_by_host_ms"] == {"step": pytest.approx(0.03)}
     assert three["idle_other_threads_ms"] == {} and three["idle_by_next_kernel_ms"] == {}
+
+
+def test_device_gaps_name_what_led_to_a_sync_the_device_ran_dry_in():
+    """A gap that began inside a sync call is also charged to that call and the host events
+    that ended just before it began (oldest first): here a graph launch, then a copy whose
+    own cudaMemcpyAsync ended inside it; a gap in any other event gets no lead-in."""
+    from benchmarks.device_gaps import LEAD_IN, device_gaps
+
+    kernels = [(0, 10, "march"), (40, 50, "mlp"), (90, 100, "hash")]
+    host = [
+        (0, 3, "grid_update", 1),
+        (3, 5, "cudaGraphLaunch", 1),
+        (5, 8, "aten::copy_", 1),
+        (6, 7, "cudaMemcpyAsync", 1),
+        (9, 45, "cudaDeviceSynchronize", 1),
+        (46, 95, "render", 1),
+    ]
+    g = device_gaps(kernels, host, steps=1)
+    assert LEAD_IN == 4
+    lead = "grid_update › cudaGraphLaunch › cudaMemcpyAsync › aten::copy_"
+    assert g["idle_by_sync_lead_in_ms"] == {
+        f"cudaDeviceSynchronize after {lead}": pytest.approx(0.03)
+    }
+    assert g["idle_by_host_ms"]["render"] == pytest.approx(0.04)
 
 
 def test_profile_step_profiles_several_variants_side_by_side(tiny_scene, tmp_path, capsys):
@@ -843,8 +877,9 @@ def test_gpu_runs60_skips_a_scene_whose_data_never_arrives(tmp_path):
 
 
 def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
-    """gpu_poll.sh: once every list is done, RESULTS' JSON (lines too), Markdown and logs go to
-    $OUT/res.tgz, checkpoints left out; bad arguments are one line and exit code 2."""
+    """gpu_poll.sh: once every list is done, RESULTS' JSON (lines too, gzipped traces), Markdown
+    and logs go to $OUT/res.tgz, checkpoints left out; bad arguments are one line and exit
+    code 2."""
     import tarfile
 
     script = Path(__file__).parents[1] / "benchmarks" / "gpu_poll.sh"
@@ -854,6 +889,7 @@ def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
     (run / "error_vs_time.json").write_text("{}")
     (run / "metrics.jsonl").write_text("{}\n")
     (run / "ckpt.pt").write_bytes(b"x" * 100)
+    (run / "trace.json.gz").write_bytes(b"x" * 10)  # profile_step --trace
     (res / "a" / "progress.log").write_text("[00:00:01 +0s] plant none0 rc 0\n")
     (res / "a" / "all.done").touch()
     back = tmp_path / "back"
@@ -867,6 +903,7 @@ def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
         names = set(t.getnames())
     assert "o20/a/plant/none0/error_vs_time.json" in names and "o20/a/progress.log" in names
     assert "o20/a/plant/none0/metrics.jsonl" in names
+    assert "o20/a/plant/none0/trace.json.gz" in names
     assert not any(n.endswith(".pt") for n in names)
     for args in ([], [str(tmp_path / "nothing"), "5"], [str(res), "soon"]):
         r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True, env=env)
