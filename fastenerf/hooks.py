@@ -188,6 +188,7 @@ CALIBRATION_KEYS = (
     "pose_error_aligned_deg",
     "pose_settle_px",
     "field_win_max",
+    "poses_frozen",
     "threshold_pos",
     "threshold_neg",
     "threshold_ratio",

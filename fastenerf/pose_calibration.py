@@ -256,6 +256,8 @@ class PoseCalibration:
         out["c2f"] = 1.0 if self.c2f is None else self.c2f
         if self.settle is not None:
             out.update(self.settle.stats())
+        if self.cfg.refine_freeze:
+            out["poses_frozen"] = float(self.frozen)
         return out
 
     def report(self) -> dict[str, Any]:

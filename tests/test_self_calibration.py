@@ -437,6 +437,9 @@ def test_refine_freeze_stops_the_pose_learning_once_the_poses_settle(scene, tmp_
     assert all(torch.equal(a[k], r[k]) for k in a)
     conf = json.loads((tmp_path / "whole" / "config.json").read_text())
     assert conf["self_calibration"]["poses"]["frozen"] is True
+    lines = (tmp_path / "whole" / "metrics.jsonl").read_text().splitlines()
+    frozen = [json.loads(line)["poses_frozen"] for line in lines]
+    assert frozen[0] == 0.0 and frozen[-1] == 1.0  # the viewer's stats say so
 
 
 def test_refine_freeze_needs_the_poses_refined_and_a_settle_tolerance(scene):
