@@ -1189,3 +1189,52 @@ def test_explicit_syncs_names_the_line_that_waits_and_restores_the_entry_points(
     assert here in first and "[warp.synchronize]" in first and "(test_explicit_syncs" in first
     assert "[warp.synchronize_device]" in second
     assert syncs.examples(1) == [f"{first} x3"]
+
+
+def test_trace_syncs_names_the_calls_before_a_device_wide_sync(tmp_path, capsys):
+    """trace_syncs: each cudaDeviceSynchronize of a (gzipped) Chrome trace, on any thread,
+    counted by what contains it and the events of its thread that ended last before it,
+    with the device idle gap it returned in (a call that returned while a kernel ran: none).
+    Bad input: one line, exit 2, an existing --out left alone."""
+    import gzip
+
+    from benchmarks import trace_syncs
+
+    def x(name, ts, dur, cat="cpu_op", tid=1):
+        return {"ph": "X", "name": name, "ts": ts, "dur": dur, "cat": cat, "pid": 0, "tid": tid}
+
+    events = [
+        x("grid_update", 0, 10, "user_annotation"),
+        x("aten::copy_", 2, 3),
+        x("cudaGraphLaunch", 12, 2, "cuda_runtime"),
+        x("cudaDeviceSynchronize", 20, 30, "cuda_runtime"),
+        x("cudaDeviceSynchronize", 60, 1, "cuda_runtime", tid=2),
+        x("step", 100, 50, "user_annotation"),
+        x("aten::copy_", 102, 3),
+        x("cudaGraphLaunch", 112, 2, "cuda_runtime"),
+        x("cudaDeviceSynchronize", 120, 30, "cuda_runtime"),  # the same context, in `step`
+        x("march", 0, 30, "kernel", tid=7),
+        x("mlp", 55, 15, "kernel", tid=7),
+        x("hash", 160, 5, "kernel", tid=7),
+        x("grid_update", 18, 0.0, "user_annotation", tid=7),
+    ]
+    path = tmp_path / "trace.json.gz"
+    path.write_bytes(gzip.compress(json.dumps({"traceEvents": events}).encode()))
+    rows = trace_syncs.sync_contexts(trace_syncs.load_trace(path), "cudaDeviceSynchronize", 2)
+    # gaps 30-55 (the first call returns in it at 50) and 70-160 (the third at 150; the
+    # second thread's call returned at 61, while mlp ran)
+    assert [(r["calls"], r["idle_us"], r["in"], r["after"]) for r in rows] == [
+        (1, 90.0, ["step"], ["aten::copy_", "cudaGraphLaunch"]),
+        (1, 25.0, [], ["grid_update", "cudaGraphLaunch"]),
+        (1, 0.0, [], []),
+    ]
+    out = tmp_path / "syncs.md"
+    assert trace_syncs.main([str(path), "--before", "2", "--out", str(out)]) == 0
+    md = out.read_text()
+    assert "| 1 | 0.090 | step | aten::copy_ › cudaGraphLaunch |" in md
+    assert "(3 calls)" in md
+    capsys.readouterr()
+    for bad in ([str(tmp_path / "none.json.gz")], [str(out)], [str(path), "--out", str(out)]):
+        assert trace_syncs.main(bad) == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert out.read_text() == md
