@@ -180,10 +180,10 @@ def test_graph_body_refines_poses_on_the_cpu(scene, tmp_path):
     assert_same_losses(a, [s["loss"] for s in graph.history])
     # before refine_start, one shared correction, one per pose under c2f, every level on
     assert list(dict.fromkeys(keys)) == [
-        ("gradient", (False, True)),
-        ("gradient", (True, True)),
-        ("gradient", (True, False)),
-        (False, (True, False)),
+        ("gradient", (False, True, False)),
+        ("gradient", (True, True, False)),
+        ("gradient", (True, False, False)),
+        (False, (True, False, False)),
     ]
     assert graph.field.level_weights is None and len(weights) == 1
     want, got = (t.selfcal.poses.delta for t in (plain, graph))
@@ -191,6 +191,27 @@ def test_graph_body_refines_poses_on_the_cpu(scene, tmp_path):
     assert float(got.detach().abs().max()) > 0
     static = graph.graph._static
     assert static.dirs is not None and static.pose_idx is not None
+
+
+def test_graph_body_takes_the_plain_paths_steps_through_refine_freeze(scene, tmp_path):
+    """refine_freeze on the graphed body: the step after the poses settle has another graph
+    key (no pose lr, frozen), the same losses as the plain path's through the switch, and
+    poses that stop where the plain path's stop."""
+    kw = dict(steps=12, refine_poses=True, refine_start=0.0, refine_warmup=0.0)
+    kw.update(refine_settle_px=1e3, refine_freeze=True)
+    plain = make(scene, tmp_path / "plain", "plain", **kw)
+    a = losses(plain, 12)
+    graph = make(scene, tmp_path / "graph", "graph", **kw)
+    keys = []
+    for _ in range(12):
+        graph.step()
+        keys.append(graph.graph._key[2])
+    graph.flush_stats()
+    assert_same_losses(a, [s["loss"] for s in graph.history])
+    assert list(dict.fromkeys(keys)) == [(True, False, False), (False, False, True)]
+    assert graph.selfcal.pose_cal.frozen and plain.selfcal.pose_cal.frozen
+    want, got = (t.selfcal.poses.delta for t in (plain, graph))
+    assert_same_tensor(want, got, "delta")
 
 
 @pytest.mark.skipif(not CUDA, reason="no CUDA: capture needs it")
