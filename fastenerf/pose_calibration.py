@@ -180,18 +180,15 @@ class PoseCalibration:
         """rays_o, rays_d (2B, 3) of a batch through the corrected poses; keeps its rows."""
         if batch.pose_idx is None:
             raise ValueError("SelfCalibration: the sampler was built without with_poses")
-        if self.frozen:  # no pose gradient: the field skips its position gradient too
+        # the batch's own rays: what the fused path returns on uncorrected rows (δ = 0);
+        # frozen, none carries a gradient, so the field skips its position gradient too
+        with torch.set_grad_enabled(torch.is_grad_enabled() and not self.frozen):
+            rays_o, rays_d, self.seen = self.refiner.rays_and_rows(
+                batch.dirs, batch.pose_idx, batch.rays_d
+            )
+        if self.frozen:
             self.grad_rays = None
-            with torch.no_grad():
-                rays_o, rays_d, self.seen = self.refiner.rays_and_rows(
-                    batch.dirs, batch.pose_idx, batch.rays_d
-                )
-            return rays_o, rays_d
-        # the batch's own rays: what the fused path returns on uncorrected rows (δ = 0)
-        rays_o, rays_d, self.seen = self.refiner.rays_and_rows(
-            batch.dirs, batch.pose_idx, batch.rays_d
-        )
-        if self.cfg.refine_win_max is None:
+        if self.frozen or self.cfg.refine_win_max is None:
             return rays_o, rays_d
         return self._short_windows_only(batch.pose_idx, rays_o, rays_d)
 
