@@ -70,6 +70,11 @@ class TrainConfig:
     rays_per_step: int | None = field(default=None, metadata={"min": 1, "max": MAX_RAYS_PER_STEP})
     """Pixels per step, each rendered at the window's start and end. Default: by preset and
     device (8192 on CUDA; on a CPU 512, the CPU preset's for ngp; 1024 for eventnerf)."""
+    samples_per_step: int | None = field(default=None, metadata={"min": 1024, "max": 1 << 30})
+    """ngp: adapt the pixels per step so that a step trains on about this many samples
+    (DESIGN §4: ~256 k on a GPU; instant-ngp's rule, `batch_size`), in multiples of 1,024
+    pixels up to rays_per_step, decided where the sampler draws a block of steps. None:
+    rays_per_step throughout."""
     windows_per_step: int = field(default=1, metadata={"min": 1, "max": 65536})
     """Windows per step; the pixels are split evenly over them (fast preset: 16)."""
     lr: float | None = field(default=None, metadata={"gt": 0.0, "max": 1.0})
@@ -226,6 +231,8 @@ class TrainConfig:
         rays, wins = self.rays_per_step, self.windows_per_step
         ok = rays is None or rays >= wins
         _check(ok, where, "rays_per_step", f"must be at least windows_per_step ({wins})")
+        ok = self.samples_per_step is None or self.backend == "ngp"
+        _check(ok, where, "samples_per_step", "needs the ngp backend (it counts the samples)")
         self._validate_self_calibration(where)
         ok = (b := self.adam_betas) is None or (len(b) == 2 and all(0 <= x < 1 for x in b))
         _check(ok, where, "adam_betas", f"must be two numbers in [0, 1), got {b}")

@@ -145,7 +145,8 @@ class ScheduledEval(Hook):
         metrics = evaluate_now(trainer, self.ev)
         losses = [s["loss"] for s in self.acc if math.isfinite(s["loss"])]
         n_rays = trainer.rays_per_step_total
-        samples = [s.get("samples_per_ray", float("nan")) * n_rays for s in self.acc]
+        # each step's own rays: samples_per_step changes them within a run
+        samples = [s.get("samples_per_ray", float("nan")) * s.get("rays", n_rays) for s in self.acc]
         # a compacted step marched more than the field ran on (no marched_per_ray: the same)
         marched = [
             s.get("marched_per_ray", s.get("samples_per_ray", float("nan"))) for s in self.acc

@@ -193,9 +193,9 @@ class RaySampler:
         self._block: list[RayBatch] = []  # drawn batches not handed out yet
         self._block_state: dict | None = None  # RNG states the current block was drawn from
         self.device = torch.device(device)
-        self.n_windows = int(windows_per_step)
-        self.per_window = max(1, int(rays_per_step) // self.n_windows)
-        self.n_neg = min(self.per_window, int(round(neg_ratio * self.per_window)))
+        self.n_windows, self.neg_ratio = int(windows_per_step), float(neg_ratio)
+        self._resize(max(1, int(rays_per_step) // self.n_windows))
+        self._next_per_window: int | None = None  # set_pixels: from the next block on
         self.n_pix = rig.intrinsics.width * rig.intrinsics.height
         self.dirs = camera_directions(rig.intrinsics, self.device)
         grid_t = windows.grid_times(np.arange(windows.n_views + 1))
@@ -209,6 +209,24 @@ class RaySampler:
         if use_kernel is not False:
             self._kernel = self._check_kernel(_load_window_sum())
         self._kernel_arrays = index.to_torch(self.device) if self._kernel else None
+
+    def _resize(self, per_window: int) -> None:
+        self.per_window = int(per_window)
+        self.n_neg = min(self.per_window, int(round(self.neg_ratio * self.per_window)))
+
+    @property
+    def pixels(self) -> int:
+        """Pixels per step of the next block drawn (each rendered at t0 and at t1)."""
+        return self.n_windows * (self._next_per_window or self.per_window)
+
+    def set_pixels(self, n: int) -> None:
+        """Draw about `n` pixels per step (split evenly over the windows) from the next block
+        on; the block being handed out keeps its size."""
+        self._next_per_window = max(1, int(n) // self.n_windows)
+
+    def block_done(self) -> bool:
+        """Whether the next `sample` draws a new block (where `set_pixels` takes effect)."""
+        return not self._block
 
     @property
     def target_backend(self) -> str:
@@ -350,6 +368,9 @@ class RaySampler:
     def sample(self) -> RayBatch:
         """One step's windows, pixels, rays and targets (from the current prefetched block)."""
         if not self._block:
+            if self._next_per_window is not None:
+                self._resize(self._next_per_window)
+                self._next_per_window = None
             self._block_state = self._rng_state()
             self._block = self._draw_block(self.prefetch)
         return self._block.pop(0)
@@ -415,7 +436,8 @@ class RaySampler:
         resume redraws the same block and goes on where it stopped."""
         # windows_now: the lengths as they are now (`WindowSampler.set_win_max` may have moved
         # them since the block was drawn), restored once the block is drawn again
-        now = {"windows_now": self.windows.state_dict()}
+        now = {"windows_now": self.windows.state_dict(), "per_window": self.per_window}
+        now["per_window_next"] = self._next_per_window
         if not self._block:
             return {**self._rng_state(), "position": 0, **now}
         return {**self._block_state, "position": self.prefetch - len(self._block), **now}
@@ -423,6 +445,9 @@ class RaySampler:
     def load_state_dict(self, state: dict) -> None:
         self.windows.load_state_dict(state["windows"])
         self.gen.set_state(state["gen"].cpu() if hasattr(state["gen"], "cpu") else state["gen"])
+        if state.get("per_window") is not None:  # the block's size (`set_pixels`)
+            self._resize(int(state["per_window"]))
+        self._next_per_window = state.get("per_window_next")
         self._block = []
         position = int(state.get("position", 0))
         if position > 0:

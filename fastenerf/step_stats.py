@@ -31,10 +31,11 @@ def step_stats(
     elapsed: float,
     on_device: bool,
 ) -> dict[str, Any]:
-    """The stats of step `step` (counted from 1): loss, rays_per_s (over the step's `dt`
-    seconds), elapsed_s (the training clock, s), lr, positive_fraction (share of event pixels),
-    the loss's `parts`, and samples_per_ray / marched_per_ray where the render `out` counts
-    them. on_device: tensor values stay 0-dim float32 device tensors, else Python floats."""
+    """The stats of step `step` (counted from 1): loss, rays (rendered: two a pixel),
+    rays_per_s (over the step's `dt` seconds), elapsed_s (the training clock, s), lr,
+    positive_fraction (share of event pixels), the loss's `parts`, and samples_per_ray /
+    marched_per_ray where the render `out` counts them. on_device: tensor values stay 0-dim
+    float32 device tensors, else Python floats."""
     host = device_scalar if on_device else float
     n_rays = int(batch.rays_o.shape[0])
     positive = batch.positive_share
@@ -42,6 +43,7 @@ def step_stats(
     stats = {
         "step": step,
         "loss": loss,
+        "rays": n_rays,
         "rays_per_s": n_rays / max(dt, 1e-9),
         "elapsed_s": elapsed,
         "lr": lr,

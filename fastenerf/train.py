@@ -24,6 +24,7 @@ import torch
 from torch.profiler import record_function
 
 from . import run_config, train_state
+from .batch_size import QUANTUM, BatchSize, lag_blocks
 from .config import TrainConfig
 from .data.formats.native import Scene
 from .device_step import FiniteGuard, PendingStats, supports_device_guard
@@ -83,6 +84,7 @@ class Trainer:
         self.field: Field = make_field(self.cfg.backend, scene.config, self.cfg).to(self.device)
         self.optimizer = field_adam(self.field, self.cfg, self.device)
         self.selfcal = self._make_self_calibration()  # None unless refine/estimate is on
+        self.batch_size = self._make_batch_size()  # None unless samples_per_step is set
         bg = scene_background(scene.config)
         self.background = None if bg is None else torch.tensor(bg, device=self.device)
         self.amp = bool(self.cfg.amp and self.device.type == "cuda")
@@ -186,6 +188,16 @@ class Trainer:
         args = (thresholds, self.field, true_c2w, measured_ratio(self.scene, self.cfg), turn)
         return SelfCalibration(self.cfg, self.sampler, *args)
 
+    def _make_batch_size(self) -> BatchSize | None:
+        c = self.cfg
+        if c.samples_per_step is None:
+            return None
+        hi = c.rays_per_step
+        lo = min(hi, max(QUANTUM, c.windows_per_step))
+        block = self.sampler.prefetch
+        lag = lag_blocks(block, STATS_FLUSH_EVERY)
+        return BatchSize(c.samples_per_step, lo, hi, block, lag)
+
     @property
     def rays_per_step_total(self) -> int:
         """Rays rendered per step: each pixel at t0 and at t1, pixels split over the windows."""
@@ -252,6 +264,10 @@ class Trainer:
             with record_function("grid_update"):
                 self.field.update(self.step_count)
             with record_function("sample_rays"):
+                if self.batch_size is not None and self.sampler.block_done():
+                    n = self.batch_size.decide(self.step_count, self.sampler.pixels)
+                    if n is not None:
+                        self.sampler.set_pixels(n)
                 batch = self.sampler.sample()
             if self.graph is not None:
                 out, loss_value, parts = self.graph(batch)
@@ -292,6 +308,8 @@ class Trainer:
         self.skipped_steps = self._skipped_before_guard + int(skipped)
         for st in done:
             append_history(self.history, st, self.skipped_steps)
+        if self.batch_size is not None:
+            self.batch_size.observe(done)
         return done
 
     def _forward(self, batch):
@@ -347,6 +365,8 @@ class Trainer:
             stats.update(self.selfcal.stats(on_device))
         if not on_device:
             append_history(self.history, stats, self.skipped_steps)
+            if self.batch_size is not None:
+                self.batch_size.observe([stats])
             return stats
         self.pending.add(stats)
         if len(self.pending) >= STATS_FLUSH_EVERY:  # on CUDA read one flush later: no wait

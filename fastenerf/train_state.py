@@ -90,6 +90,8 @@ def trainer_state(tr: Trainer) -> dict[str, Any]:
     }
     if tr.selfcal is not None:  # learnt poses / thresholds (issue #20)
         state["self_calibration"] = tr.selfcal.state_dict()
+    if tr.batch_size is not None:  # the samples per ray its next decisions read
+        state["batch_size"] = tr.batch_size.state_dict()
     return state
 
 
@@ -162,6 +164,10 @@ def restore(tr: Trainer, ck: dict) -> None:
         saved = ck["sampler"]
         state = {k: _windows_loaded(saved[k]) for k in WINDOW_STATES if k in saved}
         state.update(gen=saved["gen"], position=int(saved.get("position", 0)))
+        state.update(per_window=saved.get("per_window"))
+        state.update(per_window_next=saved.get("per_window_next"))
+        if tr.batch_size is not None:
+            tr.batch_size.load_state_dict(ck["batch_size"])
         tr.sampler.load_state_dict(state)
         rng = ck["rng"]
         torch.set_rng_state(rng["torch"])
