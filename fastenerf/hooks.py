@@ -144,12 +144,15 @@ class ScheduledEval(Hook):
         te = time.perf_counter()
         metrics = evaluate_now(trainer, self.ev)
         losses = [s["loss"] for s in self.acc if math.isfinite(s["loss"])]
-        n_rays = trainer.rays_per_step_total
         # each step's own rays: samples_per_step changes them within a run
-        samples = [s.get("samples_per_ray", float("nan")) * s.get("rays", n_rays) for s in self.acc]
+        rays = [s.get("rays", trainer.rays_per_step_total) for s in self.acc]
+        samples = [
+            s.get("samples_per_ray", float("nan")) * r for s, r in zip(self.acc, rays, strict=True)
+        ]
         # a compacted step marched more than the field ran on (no marched_per_ray: the same)
         marched = [
-            s.get("marched_per_ray", s.get("samples_per_ray", float("nan"))) for s in self.acc
+            s.get("marched_per_ray", s.get("samples_per_ray", float("nan"))) * r
+            for s, r in zip(self.acc, rays, strict=True)
         ]
         compacted = sum("marched_per_ray" in s for s in self.acc)
         point = {
@@ -160,7 +163,8 @@ class ScheduledEval(Hook):
             "eval_s": time.perf_counter() - te,
             "loss": sum(losses) / len(losses) if losses else float("nan"),
             "samples_per_step": sum(samples) / max(len(samples), 1),
-            "marched_per_step": n_rays * sum(marched) / max(len(marched), 1),
+            "marched_per_step": sum(marched) / max(len(marched), 1),
+            "rays_per_step": sum(rays) / max(len(rays), 1),
             "compacted_share": compacted / max(len(self.acc), 1),
             "trained_slots": trained_slots_now(trainer),
             "graph_captures": getattr(trainer.graph, "captures", None),

@@ -95,6 +95,32 @@ def test_a_run_with_a_sample_target_resizes_at_block_starts_and_resumes_exactly(
     assert a and all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_eval_points_count_each_steps_own_rays(scene, tmp_path, monkeypatch):
+    """A scheduled point's samples, marched samples and rays per step are the means over its
+    steps of each step's own (a resized run's steps differ), not the config's rays_per_step."""
+    from fastenerf.evaluate import make_eval_set
+    from fastenerf.hooks import ScheduledEval
+
+    small_quantum(monkeypatch)
+    kw = dict(steps=40, rays_per_step=256, windows_per_step=4, samples_per_step=2048)
+    tr = Trainer(scene, tiny_cfg("ngp", **kw), tmp_path / "r")
+    points = []
+    hook = ScheduledEval(make_eval_set(scene, 1, 0.25), [1e6], points.append)
+    hook.on_start(tr)
+    for _ in range(40):
+        stats = tr.step()
+        if tr.step_count == 40:  # the clock passes the point's time at the last step
+            tr.train_seconds = 1e6
+        hook.after_step(tr, stats)
+    (p,) = points
+    h = tr.history[-40:]
+    assert h[0]["rays"] != h[-1]["rays"]
+    assert p["rays_per_step"] == pytest.approx(sum(s["rays"] for s in h) / 40)
+    want = sum(s["samples_per_ray"] * s["rays"] for s in h) / 40
+    assert p["samples_per_step"] == pytest.approx(want)
+    assert p["marched_per_step"] == pytest.approx(want)  # no compaction: the same samples
+
+
 def test_without_a_target_the_pixels_stay_and_the_option_needs_ngp(scene, tmp_path):
     tr = Trainer(scene, tiny_cfg("ngp", steps=20, rays_per_step=64), tmp_path / "r")
     tr.run(progress=False)
