@@ -87,8 +87,9 @@ class ScheduledEval(Hook):
 
     A point: target_s, train_s, step, psnr, ssim, psnr_uncorrected, eval_s, the means
     since the previous point of loss, samples_per_step (the samples the field ran on),
-    marched_per_step, rays_per_step (rendered, two a pixel) and step_ms, compacted_share (the share of those steps that ran on
-    compacted samples: `MarcherOptions.early_stop_eps`), trained_slots (the slots, padding
+    marched_per_step, rays_per_step (rendered, two a pixel) and step_ms, compacted_share
+    (the share of those steps that ran on compacted samples: `MarcherOptions.early_stop_eps`),
+    trained_slots (the slots, padding
     included, of the fixed-capacity buffer the field trains on now; None where buffers are
     exactly sized), graph_captures (CUDA graphs captured so far in this process: one more at
     every change of the step's graph key, e.g. a buffer's capacity; None without a graphed
