@@ -214,6 +214,33 @@ def test_graph_body_takes_the_plain_paths_steps_through_refine_freeze(scene, tmp
     assert_same_tensor(want, got, "delta")
 
 
+def test_graph_body_takes_the_plain_paths_steps_through_a_batch_resize(
+    scene, tmp_path, monkeypatch
+):
+    """samples_per_step resizes the batch where a block starts (here the second, step 17):
+    the graphed body takes new static buffers (the batch's shapes are in the key) and the
+    plain path's losses through the switch (24 steps: over longer runs the two paths' float
+    rounding drifts apart by more than the tolerance, resize or not)."""
+    from fastenerf import batch_size as bs
+    from fastenerf import train as train_mod
+
+    monkeypatch.setattr(bs, "QUANTUM", 16)
+    monkeypatch.setattr(train_mod, "QUANTUM", 16)
+    monkeypatch.setattr(train_mod, "lag_blocks", lambda block, flush: 1)
+    kw = dict(steps=40, rays_per_step=256, windows_per_step=4, samples_per_step=2048)
+    plain = make(scene, tmp_path / "plain", "plain", **kw)
+    a = losses(plain, 24)
+    graph = make(scene, tmp_path / "graph", "graph", **kw)
+    shapes = []
+    for _ in range(24):
+        graph.step()
+        shapes.append(graph.graph._key[0][0])
+    graph.flush_stats()
+    assert_same_losses(a, [s["loss"] for s in graph.history])
+    assert shapes[:16] == [(512, 3)] * 16 and shapes[16] != (512, 3)  # buffers taken anew
+    assert [h["rays"] for h in graph.history] == [h["rays"] for h in plain.history]
+
+
 @pytest.mark.skipif(not CUDA, reason="no CUDA: capture needs it")
 def test_a_failed_capture_leaves_an_eager_step_that_draws_random_numbers(scene, tmp_path):
     """A body that cannot be captured (here: a host sync inside it) gives up capturing with
