@@ -39,6 +39,17 @@ def losses(trainer: Trainer, n: int) -> list[float]:
     return [s["loss"] for s in trainer.history]
 
 
+def graph_keys(graph: Trainer, n: int, part: int) -> list:
+    """Step the graphed `graph` n times; part `part` of its graph key after each step (0: the
+    batch's shapes, 1: the field's, 2: the calibration's); its stats flushed."""
+    keys = []
+    for _ in range(n):
+        graph.step()
+        keys.append(graph.graph._key[part])
+    graph.flush_stats()
+    return keys
+
+
 def test_graph_body_takes_the_plain_paths_steps_on_the_cpu(scene, tmp_path):
     plain = make(scene, tmp_path / "plain", "plain", steps=6)
     a = losses(plain, 6)
@@ -202,11 +213,7 @@ def test_graph_body_takes_the_plain_paths_steps_through_refine_freeze(scene, tmp
     plain = make(scene, tmp_path / "plain", "plain", **kw)
     a = losses(plain, 12)
     graph = make(scene, tmp_path / "graph", "graph", **kw)
-    keys = []
-    for _ in range(12):
-        graph.step()
-        keys.append(graph.graph._key[2])
-    graph.flush_stats()
+    keys = graph_keys(graph, 12, 2)
     assert_same_losses(a, [s["loss"] for s in graph.history])
     assert list(dict.fromkeys(keys)) == [(True, False, False), (False, False, True)]
     assert graph.selfcal.pose_cal.frozen and plain.selfcal.pose_cal.frozen
@@ -221,21 +228,14 @@ def test_graph_body_takes_the_plain_paths_steps_through_a_batch_resize(
     the graphed body takes new static buffers (the batch's shapes are in the key) and the
     plain path's losses through the switch (24 steps: over longer runs the two paths' float
     rounding drifts apart by more than the tolerance, resize or not)."""
-    from fastenerf import batch_size as bs
-    from fastenerf import train as train_mod
+    from tests.test_batch_size import small_quantum
 
-    monkeypatch.setattr(bs, "QUANTUM", 16)
-    monkeypatch.setattr(train_mod, "QUANTUM", 16)
-    monkeypatch.setattr(train_mod, "lag_blocks", lambda block, flush: 1)
+    small_quantum(monkeypatch)
     kw = dict(steps=40, rays_per_step=256, windows_per_step=4, samples_per_step=2048)
     plain = make(scene, tmp_path / "plain", "plain", **kw)
     a = losses(plain, 24)
     graph = make(scene, tmp_path / "graph", "graph", **kw)
-    shapes = []
-    for _ in range(24):
-        graph.step()
-        shapes.append(graph.graph._key[0][0])
-    graph.flush_stats()
+    shapes = [key[0] for key in graph_keys(graph, 24, 0)]  # rays_o's shape
     assert_same_losses(a, [s["loss"] for s in graph.history])
     assert shapes[:16] == [(512, 3)] * 16 and shapes[16] != (512, 3)  # buffers taken anew
     assert [h["rays"] for h in graph.history] == [h["rays"] for h in plain.history]
