@@ -189,6 +189,8 @@ class Trainer:
         return SelfCalibration(self.cfg, self.sampler, *args)
 
     def _make_batch_size(self) -> BatchSize | None:
+        """The pixels-per-step rule of samples_per_step (`batch_size`), between one quantum
+        (or the windows a step draws) and rays_per_step; None without the option."""
         c = self.cfg
         if c.samples_per_step is None:
             return None

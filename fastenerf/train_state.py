@@ -164,8 +164,9 @@ def restore(tr: Trainer, ck: dict) -> None:
         saved = ck["sampler"]
         state = {k: _windows_loaded(saved[k]) for k in WINDOW_STATES if k in saved}
         state.update(gen=saved["gen"], position=int(saved.get("position", 0)))
-        state.update(per_window=saved.get("per_window"))
-        state.update(per_window_next=saved.get("per_window_next"))
+        state.update(
+            per_window=saved.get("per_window"), per_window_next=saved.get("per_window_next")
+        )
         if tr.batch_size is not None:
             tr.batch_size.load_state_dict(ck["batch_size"])
         tr.sampler.load_state_dict(state)
