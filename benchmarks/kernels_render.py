@@ -338,7 +338,7 @@ def _bench_march_single(margs, exact, device, repeats, torch_ms: float) -> dict:
     """The single pass (`single_pass=True`: march once into scratch rows, then copy) against
     the two passes, side by side: at the benchmark's rays (exact and fixed buffers, the fixed
     one also replayed from a CUDA graph) and at a quarter of them (training's 2 x 8,192 rays
-    at the default split into segments); whether the samples are the two passes' own; the
+    at the former default split into segments); whether the samples are the two passes' own; the
     single pass's speed-up over plain PyTorch's march (`torch_ms`)."""
     S = int(exact[0][:, 1].sum())
     capacity = S + S // 4 + 1

@@ -1,9 +1,10 @@
 """Pixels per step from a target of samples per step (`samples_per_step`, issue #17).
 
 DESIGN §4 names ~256 k samples a training step on a GPU (instant-ngp's rule: the rays a step
-draws follow the samples per ray the occupancy grid leaves), where a fixed 8,192 pixels (two
-rays each, at t0 and t1) train on 0.7-1.3 M once the grid is carved and more while the field
-is fog. `BatchSize` sets the pixels per step so that 2 x pixels x samples per ray ≈ target:
+draws follow the samples per ray the occupancy grid leaves), where a fixed number of pixels
+(two rays each, at t0 and t1) trains on as many samples as the grid leaves them: few once it
+is carved and many more while the field is fog. `BatchSize` sets the pixels per step so that
+2 x pixels x samples per ray ≈ target:
 
     pixels = clamp(round(target / (2 · samples_per_ray) / QUANTUM) · QUANTUM, lo, hi)
 

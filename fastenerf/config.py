@@ -31,6 +31,9 @@ from .schema import check_ranges, from_dict
 
 MAX_RAYS_PER_STEP = 1 << 20
 """Pixels per step above this are refused: 2^20 already needs tens of GiB on a GPU (ngp)."""
+NGP_GPU_RAYS = 4096
+"""ngp's pixels per step on a GPU: half as many per step train as well per second as 8192
+did, in more and shorter steps (benchmarks/RESULTS.md: every built-in scene, mesh scene)."""
 
 DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 
@@ -69,7 +72,8 @@ class TrainConfig:
     with events in their window). Default: 0.1 synthetic, 0.05 real."""
     rays_per_step: int | None = field(default=None, metadata={"min": 1, "max": MAX_RAYS_PER_STEP})
     """Pixels per step, each rendered at the window's start and end. Default: by preset and
-    device (8192 on CUDA; on a CPU 512, the CPU preset's for ngp; 1024 for eventnerf)."""
+    device and backend (ngp on CUDA 4096, vanilla on CUDA 8192; on a CPU 512, the CPU
+    preset's for ngp; 1024 for eventnerf)."""
     samples_per_step: int | None = field(default=None, metadata={"min": 1024, "max": 1 << 30})
     """ngp: adapt the pixels per step so that a step trains on about this many samples
     (DESIGN §4: ~256 k on a GPU; instant-ngp's rule, `batch_size`), in multiples of 1,024
@@ -312,8 +316,9 @@ class TrainConfig:
         if cpu_ngp:  # the CPU preset fills the options left unset (fastenerf.cpu_preset)
             c.backend_options = ngp_cpu_options(c.backend_options)
         if c.rays_per_step is None:
-            # ~256k samples per step on a GPU (DESIGN §4); a 2-core CPU needs small batches.
-            c.rays_per_step = 8192 if str(device).startswith("cuda") else 512
+            # a 2-core CPU needs small batches; vanilla keeps the 8192 it was measured with
+            gpu = NGP_GPU_RAYS if c.backend == "ngp" else 8192
+            c.rays_per_step = gpu if str(device).startswith("cuda") else 512
             c.rays_per_step = NGP_CPU_RAYS if cpu_ngp else c.rays_per_step
             c.rays_per_step = max(c.rays_per_step, c.windows_per_step)
         c.refine_windows_per_step, c.refine_decay = c.refine_defaults()
@@ -400,8 +405,8 @@ TRAIN_PRESETS: dict[str, dict[str, Any]] = {
         "amp": True,
     },
     # Our choices for speed:
-    # - rays_per_step by device (8192 on CUDA ≈ 256k samples/step for ngp, 512 on a 2-core CPU):
-    #   big batches keep the GPU busy; the per-step cost is what limits a CPU.
+    # - rays_per_step by device and backend (ngp: NGP_GPU_RAYS on CUDA, 256 on a CPU): more,
+    #   smaller steps learn faster per second; the per-step cost is what limits a CPU.
     # - 16 windows per step: one window sees a narrow arc of views, so a step with many windows
     #   gives a far less noisy gradient for the same number of rays.
     # - window length re-drawn every step: every end view meets every length over training

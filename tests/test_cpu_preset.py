@@ -7,6 +7,7 @@ import pytest
 from fastenerf.backends import get_option, parse_options
 from fastenerf.config import (
     FAST_WINDOW_FRACTION,
+    NGP_GPU_RAYS,
     SETTLE_PX,
     CylinderConfig,
     IntrinsicsConfig,
@@ -60,9 +61,10 @@ def test_user_options_win_flat_or_nested():
 def test_gpu_and_vanilla_untouched():
     c = train_preset("fast", "ngp").resolved(scene(), "cuda:0")
     assert get_option("ngp", c.backend_options, "log2_table_size") is None
-    assert c.rays_per_step == 8192
+    assert c.rays_per_step == NGP_GPU_RAYS == 4096
     v = TrainConfig(backend="vanilla").resolved(scene(), "cpu")
     assert v.backend_options == {} and v.rays_per_step == 512
+    assert TrainConfig(backend="vanilla").resolved(scene(), "cuda:0").rays_per_step == 8192
 
 
 def test_longer_windows_for_the_fast_preset_on_synthetic_scenes():
