@@ -86,13 +86,13 @@ def sync_contexts(events: list[dict], name: str, before: int) -> list[dict]:
             if e.get("name") != name:
                 continue
             t0 = float(e["ts"])
-            outer = [_name(x) for x in evs[:i] if float(x["ts"]) <= t0 < _end(x)]
-            ended = sorted((x for x in evs[:i] if _end(x) <= t0), key=_end)
-            lead = [_name(x) for x in ended[-before:]] if before else []
+            outer = [event_name(x) for x in evs[:i] if float(x["ts"]) <= t0 < event_end(x)]
+            ended = sorted((x for x in evs[:i] if event_end(x) <= t0), key=event_end)
+            lead = [event_name(x) for x in ended[-before:]] if before else []
             key = (tuple(outer), tuple(lead))
             rows.setdefault(key, {"calls": 0, "idle_us": 0.0, "in": outer, "after": lead})
             rows[key]["calls"] += 1
-            calls.append((_end(e), key))
+            calls.append((event_end(e), key))
     last: dict[int, tuple[float, tuple]] = {}  # gap -> the last call that returned in it
     for t1, key in calls:
         j = bisect.bisect_left(gap_ends, t1)
@@ -103,12 +103,12 @@ def sync_contexts(events: list[dict], name: str, before: int) -> list[dict]:
     return sorted(rows.values(), key=lambda r: (-r["idle_us"], -r["calls"]))
 
 
-def _name(e: dict) -> str:
+def event_name(e: dict) -> str:
     """An event's name without object addresses (they differ call to call)."""
     return ADDRESS.sub("", str(e.get("name", "")))
 
 
-def _end(e: dict) -> float:
+def event_end(e: dict) -> float:
     return float(e["ts"]) + float(e.get("dur", 0))
 
 

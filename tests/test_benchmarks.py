@@ -1238,3 +1238,61 @@ def test_trace_syncs_names_the_calls_before_a_device_wide_sync(tmp_path, capsys)
         assert trace_syncs.main(bad) == 2
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert out.read_text() == md
+
+
+def test_trace_gaps_puts_each_device_gap_in_one_class(tmp_path, capsys):
+    """trace_gaps: a gap ended by work launched after it began is the host's (named by the
+    innermost host op then running on the launching thread), one launched before it began is
+    queued, one between two nodes of a graph replay is in the graph, one with no launch call
+    unlinked; per step from the profile_step.json above the run folder. Bad input: one line,
+    exit 2, an existing --out left alone."""
+    import gzip
+
+    from benchmarks import trace_gaps
+
+    def x(name, ts, dur, cat="cpu_op", tid=1, corr=None):
+        e = {"ph": "X", "name": name, "ts": ts, "dur": dur, "cat": cat, "pid": 0, "tid": tid}
+        return e | ({"args": {"correlation": corr}} if corr is not None else {})
+
+    events = [
+        x("sample_rays", 0, 40, "user_annotation"),
+        x("aten::copy_", 30, 8),
+        x("cudaLaunchKernel", 2, 1, "cuda_runtime", corr=1),
+        x("cudaMemcpyAsync", 32, 2, "cuda_runtime", corr=2),  # issued after fill ended
+        x("cudaGraphLaunch", 36, 3, "cuda_runtime", corr=3),  # issued before copy ended
+        x("fill", 5, 10, "kernel", tid=7, corr=1),
+        x("Memcpy HtoD", 35, 5, "gpu_memcpy", tid=7, corr=2),  # host late: 15-35
+        x("march", 44, 6, "kernel", tid=7, corr=3),  # queued: 40-44
+        x("mlp", 50.5, 1, "kernel", tid=7, corr=3),  # in graph: 50-50.5
+        x("Memset", 60, 1, "gpu_memset", tid=7, corr=99),  # unlinked: 51.5-60
+    ]
+    run = tmp_path / "prof" / "run"
+    run.mkdir(parents=True)
+    path = run / "trace.json.gz"
+    path.write_bytes(gzip.compress(json.dumps({"traceEvents": events}).encode()))
+    (tmp_path / "prof" / "profile_step.json").write_text(json.dumps({"steps": 2}))
+    gaps = trace_gaps.classify_gaps(trace_gaps.load_trace(path))
+    assert [(g["cls"], g["idle_us"], g["before"], g["after"]) for g in gaps] == [
+        ("host late", 20.0, "fill", "Memcpy HtoD"),
+        ("queued", 4.0, "Memcpy HtoD", "march"),
+        ("in graph", 0.5, "march", "mlp"),
+        ("unlinked", 8.5, "mlp", "Memset"),
+    ]
+    assert gaps[0]["host"] == "sample_rays" and gaps[0]["launch"] == "cudaMemcpyAsync"
+    assert trace_gaps.profiled_steps(path) == 2.0
+    s = trace_gaps.summary(gaps, 2.0)
+    assert s["classes"][0] == ("host late", 0.01, 0.5)
+    assert s["host_doing"] == [("sample_rays", 0.01)]
+    out = tmp_path / "gaps.md"
+    assert trace_gaps.main([str(path), "--out", str(out)]) == 0
+    md = out.read_text()
+    assert "0.017 ms a step over 2 steps" in md and "| queued | 0.002 | 0.5 |" in md
+    capsys.readouterr()
+    for bad in (
+        [str(tmp_path / "none.json.gz")],
+        [str(path), "--steps", "0"],
+        [str(path), "--out", str(out)],
+    ):
+        assert trace_gaps.main(bad) == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert out.read_text() == md
