@@ -127,6 +127,12 @@ class OccupancyOptions:
     """Factor each cell's density decays by at every grid update."""
     update_every: int = field(default=16, metadata={"min": 1, "max": 1_000_000})
     """Steps between grid updates."""
+    update_offset: int = field(default=0, metadata={"min": 0, "max": 1_000_000})
+    """Steps past a multiple of update_every at which the grid updates (taken modulo
+    update_every; the grid also updates at step 0, where it starts empty). The sampler draws
+    its batches 16 steps at a time from step 0, so with 0 both host-heavy jobs fall on one
+    step; an offset spreads them over two, so less of the device's queue drains while the
+    host works (issue #17; not a default until measured on every scene)."""
     warmup_steps: int = field(default=256, metadata={"min": 0, "max": 10_000_000})
     """Steps during which every cell is refreshed (later: a sample of cells per update)."""
 

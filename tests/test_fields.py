@@ -354,6 +354,23 @@ def test_ngp_update_only_every_update_every_steps(make, monkeypatch):
     assert f.grid.threshold.item() >= 0  # real updates ran (the initial threshold is -0.5)
 
 
+def test_ngp_update_offset_moves_the_updates_but_keeps_step_0(make, monkeypatch):
+    """update_offset: the grid starts empty, so step 0 updates; then offset past each
+    multiple of update_every (modulo it: 7 with 5 is 2)."""
+    for offset in (2, 7):
+        f = make("ngp", update_every=5, update_offset=offset)
+        calls = []
+        real = f.grid.update
+        monkeypatch.setattr(
+            f.grid,
+            "update",
+            lambda step, *a, calls=calls, real=real, **k: (calls.append(step), real(step, *a, **k)),
+        )
+        for step in range(23):
+            f.update(step)
+        assert calls == [0, 2, 7, 12, 17, 22]
+
+
 def ball_field(make, radius: float = 0.4, **options):
     """An ngp field whose density is e^15 in a ball of ~`radius` at the origin, ~e^-20 outside.
 

@@ -216,10 +216,11 @@ class OccupancySampler:
     # -- occupancy -----------------------------------------------------------------------
     def update(self, step: int, density: SigmaFn) -> None:
         """Refresh the occupancy grid from `density` every `update_every` steps (instant-ngp's
-        schedule), and the buffer sizes and the compaction switch with it."""
+        schedule; at step 0 and `update_offset` past each multiple), and the buffer sizes and
+        the compaction switch with it."""
         self.train_step = step
         opt = self.options.occupancy
-        if step % opt.update_every:
+        if step and step % opt.update_every != opt.update_offset % opt.update_every:
             return
         for cap in (self.sample_capacity, self.pruned_capacity):
             if cap is not None:
