@@ -5,6 +5,8 @@
 #    scene and plant at the new default (4,096 pixels a step), each trace read by
 #    benchmarks.trace_gaps: the device's idle by cause (host late, queued, in graph) and the
 #    host op a late launch waited on (gpu_s49: no per-step sync; ~1 ms a step of idle);
+#    then blocks with the grid update 8 steps away from the sampler's block draw
+#    (`update_offset=8`: the two host-heavy jobs of every 16 steps no longer in one step);
 # 1. runs.txt: 60 s runs, the new default and 2,048 pixels a step on every scene;
 # 2. runs_frz.txt: #20 at 0° at the new default, refined with refine_freeze on the mesh
 #    scene, blocks and plant, then without it on the mesh scene (the step target, 15 %).
@@ -15,12 +17,18 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 AFTER=${AFTER:-/var/tmp/after}; DATA=${DATA:-/var/tmp/data}
 RES=${RES:-/var/tmp/res}/s50
 source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, profile, $PY, DEVICE; cd to the tree
+gaps() {  # NAME: the device idle of RES/NAME's trace by cause, into RES/gaps_NAME.md
+    $PY -m benchmarks.trace_gaps "$RES/$1/run/trace.json.gz" --out "$RES/gaps_$1.md" \
+        > "$RES/gaps_$1.log" 2>&1
+    note "trace_gaps $1 rc $?"
+}
 for s in blocks toyset plant; do
     profile "prof_$s" "$s" --trace
-    $PY -m benchmarks.trace_gaps "$RES/prof_$s/run/trace.json.gz" --out "$RES/gaps_$s.md" \
-        > "$RES/gaps_$s.log" 2>&1
-    note "trace_gaps $s rc $?"
+    gaps "prof_$s"
 done
+# the grid update 8 steps off the sampler's block draw (update_offset, off by default)
+profile prof_blocks_off8 blocks --trace --variant 'off8={"backend_options": {"update_offset": 8}}'
+gaps prof_blocks_off8
 commit=$(cat "$HERE/COMMIT" 2>/dev/null)
 WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" "$commit"
 WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs_frz" "$HERE/runs_frz.txt" "$commit"
