@@ -525,12 +525,17 @@ def run(args: argparse.Namespace) -> int:
     ladders = parse_schedules(args.schedule, backends)
     device = resolve_device(args.device)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     session = session_info(device, args.commit)
     scenes = [load_scene_dir(d) for d in args.scenes]
     labels = scene_labels(args.scenes)
-    # Validate every configuration before the first minute of training is spent.
+    # Validate every configuration (as each trainer will resolve it for each scene) before
+    # the first minute of training is spent and before the output folder is made: a refused
+    # run leaves nothing behind.
     cfgs = {b: make_config(b, presets[b], budgets[b], str(device), **sets[b]) for b in backends}
+    for cfg in cfgs.values():
+        for scene in scenes:
+            cfg.resolved(scene.config, str(device))
+    out.mkdir(parents=True, exist_ok=True)
     if session["machine"]["cpu_numbers"]:
         print(f"CPU numbers: {session['machine']['name']}")
     stop = StopOnSignal((signal.SIGINT, signal.SIGTERM))

@@ -1296,3 +1296,18 @@ def test_trace_gaps_puts_each_device_gap_in_one_class(tmp_path, capsys):
         assert trace_gaps.main(bad) == 2
         assert len(capsys.readouterr().err.strip().splitlines()) == 1
     assert out.read_text() == md
+
+
+def test_error_vs_time_refused_for_a_bad_option_makes_no_folder(tiny_scene, tmp_path, capsys):
+    """An option the trainer would refuse (here a backend option out of range, checked only
+    where the config is resolved for the scene) stops the benchmark before its --out folder
+    exists: one line, exit 2, nothing left behind."""
+    from benchmarks import error_vs_time
+
+    out = tmp_path / "evt"
+    argv = ["--scenes", str(tiny_scene), "--out", str(out), "--device", "cpu", "--quiet"]
+    for bad in ("update_offset=-1", "samples_per_step=10"):
+        assert error_vs_time.main([*argv, "--backends", "ngp", "--set", bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error_vs_time: error:")
+        assert not out.exists()
