@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -36,13 +37,34 @@ def benchmark_main(
     )
     add_arguments(p)
     args = p.parse_args(argv)
+    out = getattr(args, "out", None)
+    fresh = first_missing(Path(out)) if out else None
     try:
-        if out_folder and getattr(args, "out", None):
-            claim_output(args.out, BENCH_FOLDER)
+        if out_folder and out:
+            claim_output(out, BENCH_FOLDER)
         return run(args)
     except FastenerfError as e:
+        if fresh is not None:
+            drop_if_empty(fresh)
         print(f"{name}: error: {e}", file=sys.stderr)
         return 2
+
+
+def first_missing(path: Path) -> Path | None:
+    """The outermost folder of `path` that does not exist yet (`path` itself at most), or
+    None when `path` exists: what a run making `path` would create."""
+    path, top = path.absolute(), None
+    while not path.exists() and path != path.parent:
+        path, top = path.parent, path
+    return top
+
+
+def drop_if_empty(folder: Path) -> None:
+    """Remove `folder` (made by a run that was then refused) if no file was written in it:
+    bad input leaves nothing behind, and a folder holding any file is kept."""
+    if folder.is_dir() and not folder.is_symlink():
+        if not any(not p.is_dir() or p.is_symlink() for p in folder.rglob("*")):
+            shutil.rmtree(folder)
 
 
 def add_run_arguments(p: argparse.ArgumentParser, out: str) -> None:

@@ -1311,3 +1311,27 @@ def test_error_vs_time_refused_for_a_bad_option_makes_no_folder(tiny_scene, tmp_
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("error_vs_time: error:")
         assert not out.exists()
+
+
+def test_a_refused_benchmark_removes_the_empty_out_folder_it_made(tiny_scene, tmp_path, capsys):
+    """A study refused only once its levels' trainers resolve (after making --out) leaves no
+    folder behind; a folder that existed before, or one a run wrote a file into, is kept."""
+    from benchmarks import study
+    from benchmarks.cli import drop_if_empty
+
+    argv = [str(tiny_scene), "--device", "cpu", "--steps", "1", "--quiet"]
+    bad = ["--set", "update_offset=-1"]
+    out = tmp_path / "study"
+    assert study.main(["pose-error", *argv, "--out", str(out / "inner"), *bad]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert not out.exists()  # the folders it made on the way too
+    out.mkdir()
+    assert study.main(["pose-error", *argv, "--out", str(out), *bad]) == 2
+    assert out.is_dir()  # there before the run: not the run's to remove
+    (out / "a" / "b").mkdir(parents=True)
+    (out / "a" / "keep.txt").write_text("x")
+    drop_if_empty(out)
+    assert (out / "a" / "keep.txt").read_text() == "x"
+    (out / "a" / "keep.txt").unlink()
+    drop_if_empty(out)
+    assert not out.exists()
