@@ -211,6 +211,27 @@ class GraphedStep:
         self.captures += 1
         return out
 
+    @property
+    def graph(self) -> torch.cuda.CUDAGraph | None:
+        """The graph the steps replay now (None while warming up or eager)."""
+        return self._graph
+
+    def capture_copy(self, batch: RayBatch) -> torch.cuda.CUDAGraph:
+        """Another graph of the step under the current key, on the same static inputs (its
+        own pool, outputs and gradients), for `benchmarks.graph_relaunch`; the replays keep
+        using `graph`. Needs a captured `graph` (raises RuntimeError without one)."""
+        if self._graph is None or self._static is None:
+            raise RuntimeError("capture_copy needs a captured step")
+        static = self._static.fill(batch)
+        self.field.train_jitter = self._static.jitter
+        try:
+            copy = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(copy, capture_error_mode="thread_local"):
+                self.body(static)
+        finally:
+            self.field.train_jitter = None
+        return copy
+
     def give_up(self, error: BaseException) -> None:
         """Stop capturing for the rest of the run (one warning); steps run eagerly."""
         self.failure = f"{type(error).__name__}: {error}".splitlines()[0]

@@ -1335,3 +1335,37 @@ def test_a_refused_benchmark_removes_the_empty_out_folder_it_made(tiny_scene, tm
     (out / "a" / "keep.txt").unlink()
     drop_if_empty(out)
     assert not out.exists()
+
+
+def test_graph_relaunch_times_each_pattern_and_refuses_a_cpu(tiny_scene, tmp_path, capsys):
+    """graph_relaunch: ms per call of each replay pattern and its ratio to the drained one
+    (here plain functions on the CPU's clock: the slow one's ratio shows); on a CPU the
+    benchmark itself is refused in one line, exit 2, leaving no --out folder."""
+    import time as _time
+
+    import torch
+
+    from benchmarks import graph_relaunch
+
+    calls = []
+
+    def slow(i):
+        calls.append(i)
+        _time.sleep(0.002)
+
+    fast = {k: (lambda _i: None) for k in graph_relaunch.PATTERNS}
+    res = graph_relaunch.relaunch_times(
+        {**fast, "alone": slow, "as trained": slow}, 5, torch.device("cpu")
+    )
+    assert set(res["ms"]) == set(graph_relaunch.PATTERNS) and len(calls) == 10
+    assert res["ms"]["alone"] >= 2.0 and res["ms"]["as trained"] >= 2.0
+    assert res["over_alone"]["back to back"] < 0.5 < res["over_alone"]["as trained"]
+    md = graph_relaunch.markdown(
+        {**res, "scene": "s", "rays_per_step": 4096, "warmup": 0, "replays": 5}
+    )
+    assert "| alternating |" in md and "| alone |" in md
+    out = tmp_path / "gr"
+    argv = ["--scene", str(tiny_scene), "--device", "cpu", "--out", str(out)]
+    assert graph_relaunch.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "needs CUDA" in err[0] and not out.exists()

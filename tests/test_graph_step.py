@@ -8,6 +8,8 @@ hash-grid gradients order-dependent, so there the losses agree to a tolerance). 
 sample buffer is flagged on either path, never truncated silently.
 """
 
+import math
+
 import pytest
 import torch
 
@@ -284,3 +286,36 @@ def test_graphed_refinement_checkpoints_and_resumes(scene, tmp_path):
     assert resumed.set_step_mode("graph") == "graph"
     resumed.run(hooks=[], progress=False)
     assert resumed.step_count == 7 and torch.isfinite(resumed.selfcal.poses.delta).all()
+
+
+def test_capture_copy_needs_a_captured_step(scene, tmp_path):
+    """Without a captured graph (a CPU: capture off) there is nothing to copy: one clear
+    RuntimeError, and the eager step goes on as before."""
+    trainer = make(scene, tmp_path / "run", "graph", steps=4)
+    trainer.step()
+    assert trainer.graph.graph is None
+    with pytest.raises(RuntimeError, match="capture_copy needs a captured step"):
+        trainer.graph.capture_copy(trainer.sampler.sample())
+    trainer.step()
+    trainer.flush_stats()
+    assert len(trainer.history) == 2 and all(math.isfinite(s["loss"]) for s in trainer.history)
+
+
+@pytest.mark.skipif(not CUDA, reason="no CUDA: capture needs it")
+def test_capture_copy_is_a_second_graph_of_the_same_step(scene, tmp_path):
+    """The copy replays on the step's static inputs and takes a training step of its own (the
+    parameters move, the loss stays finite); the trainer's own graph still replays after."""
+    trainer = make(scene, tmp_path / "run", "graph", "cuda", steps=40)
+    while trainer.graph.graph is None:
+        trainer.step()
+    a = trainer.graph.graph
+    copy = trainer.graph.capture_copy(trainer.sampler.sample())
+    assert copy is not a and trainer.graph.graph is a
+    before = [p.detach().clone() for p in trainer.field.parameters()]
+    copy.replay()
+    torch.cuda.synchronize()
+    moved = [not torch.equal(b, p) for b, p in zip(before, trainer.field.parameters(), strict=True)]
+    assert any(moved)
+    trainer.step()
+    trainer.flush_stats()
+    assert trainer.graph.graph is a and math.isfinite(trainer.history[-1]["loss"])
