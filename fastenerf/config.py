@@ -126,6 +126,10 @@ class TrainConfig:
     check, skip and stats stay on the device, read every few steps (fused Adam); graph: device,
     replayed from a CUDA graph (ngp; device where a step cannot be captured); auto: graph on
     CUDA, plain on the CPU."""
+    graph_copies: int = field(default=1, metadata={"min": 1, "max": 2})
+    """graph: capture the step this many times and replay the copies in turn (each its own
+    memory), so a replay never waits behind the previous replay of the same graph (issue
+    #17; `benchmarks.graph_relaunch` measures whether that wait exists)."""
     chunk: int = field(default=16384, metadata={"min": 1, "max": 1 << 22})
     """Rays per render call outside training (evaluation, rendering)."""
     backend_options: dict[str, Any] = field(default_factory=dict)

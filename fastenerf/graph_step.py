@@ -114,7 +114,13 @@ def batch_key(batch: RayBatch) -> tuple:
 
 
 def graphed_step(
-    body: StepBody, field, optimizer, calibration, device: torch.device, capture: bool | None
+    body: StepBody,
+    field,
+    optimizer,
+    calibration,
+    device: torch.device,
+    capture: bool | None,
+    copies: int = 1,
 ) -> GraphedStep | None:
     """A `GraphedStep` of `body` where the step can be captured (the field has a `graph_key`,
     the self-calibration, if any, is `capturable`), with the field's and the calibration's
@@ -124,7 +130,7 @@ def graphed_step(
     lr_as_tensors(optimizer, device)
     if calibration is not None:
         calibration.lr_as_tensors(device)
-    return GraphedStep(body, field, device, capture, calibration)
+    return GraphedStep(body, field, device, capture, calibration, copies)
 
 
 class GraphedStep:
@@ -132,7 +138,8 @@ class GraphedStep:
 
     body: see `StepBody`; field: the trained field (its `graph_key()` and `train_jitter`);
     capture: capture graphs (default: on CUDA); calibration: the run's `SelfCalibration` or
-    None (its `graph_key()` joins the field's, its parameters' gradients are the graph's too).
+    None (its `graph_key()` joins the field's, its parameters' gradients are the graph's too);
+    copies: graphs captured of each key, replayed in turn (`TrainConfig.graph_copies`).
     Attributes: captures (graphs captured so far), failure (why capture was given up, or None),
     replays (steps replayed).
     """
@@ -144,16 +151,18 @@ class GraphedStep:
         device: torch.device,
         capture: bool | None = None,
         calibration=None,
+        copies: int = 1,
     ):
         self.body, self.field, self.device = body, field, torch.device(device)
-        self.calibration = calibration
+        self.calibration, self.copies = calibration, int(copies)
         self.capture = self.device.type == "cuda" if capture is None else bool(capture)
         self.captures = self.replays = 0
         self.failure: str | None = None
         self._key: tuple | None = None
         self._static: _Static | None = None
-        self._graph: torch.cuda.CUDAGraph | None = None
-        self._out: tuple[dict, torch.Tensor, dict] | None = None
+        # the key's graphs and each one's outputs, replayed in turn
+        self._graphs: list[torch.cuda.CUDAGraph] = []
+        self._outs: list[tuple[dict, torch.Tensor, dict]] = []
         self._warm = 0
         self._stream = torch.cuda.Stream(self.device) if self.capture else None
 
@@ -178,21 +187,20 @@ class GraphedStep:
             self.field.train_jitter = None
 
     def _run(self, static: RayBatch) -> tuple[dict, torch.Tensor, dict]:
-        if self._graph is not None:
-            self._graph.replay()
-            self.replays += 1
-            return self._out
-        if not self.capture or self._warm < WARMUP:
-            self._warm += 1
-            return self._eager(static)
-        try:
-            self._out = self._capture(static)
-        except RuntimeError as e:  # a capture the driver or torch refused: run eagerly
-            self.give_up(e)
-            return self._eager(static)
-        self._graph.replay()  # the capture ran nothing: this step's update happens now
+        if not self._graphs:
+            if not self.capture or self._warm < WARMUP:
+                self._warm += 1
+                return self._eager(static)
+            try:  # a capture runs nothing: this step's update is the first replay below
+                for _ in range(self.copies):
+                    self._capture(static)
+            except RuntimeError as e:  # a capture the driver or torch refused: run eagerly
+                self.give_up(e)
+                return self._eager(static)
+        i = self.replays % len(self._graphs)
+        self._graphs[i].replay()
         self.replays += 1
-        return self._out
+        return self._outs[i]
 
     def _eager(self, static: RayBatch) -> tuple[dict, torch.Tensor, dict]:
         if self._stream is None:
@@ -203,24 +211,24 @@ class GraphedStep:
         torch.cuda.current_stream(self.device).wait_stream(self._stream)
         return res
 
-    def _capture(self, static: RayBatch) -> tuple[dict, torch.Tensor, dict]:
+    def _capture(self, static: RayBatch) -> None:
         graph = torch.cuda.CUDAGraph()
         with torch.cuda.graph(graph, capture_error_mode="thread_local"):
             out = self.body(static)
-        self._graph = graph
+        self._graphs.append(graph)
+        self._outs.append(out)
         self.captures += 1
-        return out
 
     @property
     def graph(self) -> torch.cuda.CUDAGraph | None:
-        """The graph the steps replay now (None while warming up or eager)."""
-        return self._graph
+        """The key's first graph (None while warming up or eager)."""
+        return self._graphs[0] if self._graphs else None
 
     def capture_copy(self, batch: RayBatch) -> torch.cuda.CUDAGraph:
         """Another graph of the step under the current key, on the same static inputs (its
         own pool, outputs and gradients), for `benchmarks.graph_relaunch`; the replays keep
         using `graph`. Needs a captured `graph` (raises RuntimeError without one)."""
-        if self._graph is None or self._static is None:
+        if not self._graphs or self._static is None:
             raise RuntimeError("capture_copy needs a captured step")
         static = self._static.fill(batch)
         self.field.train_jitter = self._static.jitter
@@ -242,10 +250,10 @@ class GraphedStep:
 
     def drop(self) -> None:
         """Forget the graph (and the gradients it owns); the next steps warm up again."""
-        if self._graph is not None:
+        if self._graphs:
             for p in self._graph_params():
                 p.grad = None
-        self._graph = self._out = None
+        self._graphs, self._outs = [], []
         self._warm = 0
 
     def _graph_params(self):

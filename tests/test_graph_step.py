@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from fastenerf.data.formats.native import load_scene
+from fastenerf.errors import InputError
 from fastenerf.graph_step import WARMUP, GraphedStep
 from fastenerf.train import Trainer
 from tests.same_steps import assert_same_losses, assert_same_tensor
@@ -65,20 +66,24 @@ def test_graph_body_takes_the_plain_paths_steps_on_the_cpu(scene, tmp_path):
 
 
 @pytest.mark.skipif(not CUDA, reason="no CUDA: capture needs it")
-def test_captured_step_matches_the_device_step(scene, tmp_path):
+@pytest.mark.parametrize("copies", [1, 2])
+def test_captured_step_matches_the_device_step(scene, tmp_path, copies):
+    """Replayed from one graph, or from two copies in turn (graph_copies), the steps are the
+    device path's; a new capacity recaptures every copy."""
     steps = 3 * WARMUP + 6
     device = make(scene, tmp_path / "device", "device", "cuda", steps=steps)
     a = losses(device, steps)
-    graph = make(scene, tmp_path / "graph", "graph", "cuda", steps=steps)
+    graph = make(scene, tmp_path / "graph", "graph", "cuda", steps=steps, graph_copies=copies)
     b = losses(graph, steps)
     g = graph.graph
-    assert g.failure is None and g.captures >= 1 and g.replays >= 3
+    assert g.failure is None and g.captures >= copies and g.replays >= 3
+    assert len(g._graphs) == copies
     assert b == pytest.approx(a, rel=1e-4)
     # a new capacity changes what the graph bakes in: it is captured again
     before = g.captures
     graph.field.sample_capacity.capacity *= 2
     losses(graph, WARMUP + 2)
-    assert g.captures == before + 1
+    assert g.captures == before + copies
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -319,3 +324,14 @@ def test_capture_copy_is_a_second_graph_of_the_same_step(scene, tmp_path):
     trainer.step()
     trainer.flush_stats()
     assert trainer.graph.graph is a and math.isfinite(trainer.history[-1]["loss"])
+
+
+def test_graph_copies_is_checked_and_changes_nothing_without_capture(scene, tmp_path):
+    """graph_copies outside 1..2 is one clear error; on the CPU (nothing captured) two copies
+    take the very steps one does."""
+    with pytest.raises(InputError, match="graph_copies"):
+        tiny_cfg("ngp", graph_copies=3).resolved(scene.config, "cpu")
+    one = losses(make(scene, tmp_path / "one", "graph", steps=5), 5)
+    two = make(scene, tmp_path / "two", "graph", steps=5, graph_copies=2)  # seeds the RNG anew
+    assert two.graph.copies == 2
+    assert_same_losses(one, losses(two, 5))
