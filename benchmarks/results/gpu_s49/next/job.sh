@@ -7,7 +7,8 @@
 #    host op a late launch waited on (gpu_s49: no per-step sync; ~1 ms a step of idle);
 #    then blocks with the grid update 8 steps away from the sampler's block draw
 #    (`update_offset=8`: the two host-heavy jobs of every 16 steps no longer in one step);
-#    then benchmarks.graph_relaunch on blocks and the mesh scene: the step's graph replayed
+#    then blocks with the step captured twice, the copies replayed in turn (graph_copies=2),
+#    and benchmarks.graph_relaunch on blocks and the mesh scene: the step's graph replayed
 #    alone, back to back, and alternating with a second capture of it;
 # 1. runs.txt: 60 s runs, the new default and 2,048 pixels a step on every scene;
 # 2. runs_frz.txt: #20 at 0° at the new default, refined with refine_freeze on the mesh
@@ -31,6 +32,9 @@ done
 # the grid update 8 steps off the sampler's block draw (update_offset, off by default)
 profile prof_blocks_off8 blocks --trace --variant 'off8={"backend_options": {"update_offset": 8}}'
 gaps prof_blocks_off8
+# the step captured twice and the copies replayed in turn (graph_copies, 1 by default)
+profile prof_blocks_gc2 blocks --trace --variant 'gc2={"train": {"graph_copies": 2}}'
+gaps prof_blocks_gc2
 for s in blocks toyset; do  # one graph relaunched back to back, against two in turn
     $PY -m benchmarks.graph_relaunch --scene "$DATA/$s" --device "$DEVICE" --quiet \
         --out "$RES/relaunch_$s" > "$RES/relaunch_$s.log" 2>&1
