@@ -7,6 +7,8 @@
 #   ready SCENE    waits up to 900 s for DATA/SCENE.ready (a later call copies the scene in)
 #   profile NAME SCENE [ARGS]   `benchmarks.profile_step` of DATA/SCENE at WARMUP (1000) steps,
 #                  50 profiled, into RES/NAME (its log RES/NAME.log), then a progress note
+#   run_lists LIST...   each HERE/LIST (a gpu_runs60.sh list, NAME.txt) in turn into RES/NAME
+#                  (the job's HERE/COMMIT recorded), then "runs done" and RES/all.done
 # DEVICE (cuda unless set) is exported for the job's commands.
 mkdir -p "$RES"
 [ -f /var/tmp/gpu-warp/activate.sh ] && source /var/tmp/gpu-warp/activate.sh
@@ -20,5 +22,14 @@ profile() {
     $PY -m benchmarks.profile_step --scene "$DATA/$scene" --device "$DEVICE" \
         --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/$name" "$@" > "$RES/$name.log" 2>&1
     note "profile $name rc $?"
+}
+run_lists() {
+    local commit list
+    commit=$(cat "$HERE/COMMIT" 2>/dev/null)
+    for list in "$@"; do
+        WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/${list%.txt}" "$HERE/$list" "$commit"
+    done
+    note "runs done"
+    touch "$RES/all.done"
 }
 note "start $(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1)"

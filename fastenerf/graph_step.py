@@ -226,8 +226,8 @@ class GraphedStep:
 
     def capture_copy(self, batch: RayBatch) -> torch.cuda.CUDAGraph:
         """Another graph of the step under the current key, on the same static inputs (its
-        own pool, outputs and gradients), for `benchmarks.graph_relaunch`; the replays keep
-        using `graph`. Needs a captured `graph` (raises RuntimeError without one)."""
+        own pool, outputs and gradients), for `benchmarks.graph_relaunch`; the steps keep
+        replaying their own copies. Needs a captured `graph` (RuntimeError without one)."""
         if not self._graphs or self._static is None:
             raise RuntimeError("capture_copy needs a captured step")
         static = self._static.fill(batch)

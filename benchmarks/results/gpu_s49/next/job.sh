@@ -40,8 +40,4 @@ for s in blocks toyset; do  # one graph relaunched back to back, against two in 
         --out "$RES/relaunch_$s" > "$RES/relaunch_$s.log" 2>&1
     note "graph_relaunch $s rc $?"
 done
-commit=$(cat "$HERE/COMMIT" 2>/dev/null)
-WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" "$commit"
-WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs_frz" "$HERE/runs_frz.txt" "$commit"
-note "runs done"
-touch "$RES/all.done"
+run_lists runs.txt runs_frz.txt
