@@ -12,6 +12,9 @@ was issued (the runtime call the profiler links to it by its correlation id):
 - **in graph**: between two nodes of one CUDA graph replay;
 - **unlinked**: no launch call in the trace for it.
 
+It also sums the device's own time from the trace: busy (its events' union) against the
+profiled span, and kernel time by kind (`profile_step`'s kinds), every kernel counted.
+
 The idle is per profiled step (`--steps`; default: the `steps` of the `profile_step.json`
 one folder above the trace, else the whole trace as one). Issue #17: a step whose kernels
 take 3.9 ms idles ~1 ms; whether that is the host (fewer launches, less Python) or the
@@ -29,6 +32,8 @@ from pathlib import Path
 from fastenerf.errors import InputError
 
 from .cli import benchmark_main, check_table_out, print_or_write_table
+from .device_gaps import merge_intervals
+from .profile_step import tally_kernels
 from .trace_syncs import KERNEL_CATS, event_end, event_name, load_trace
 
 LAUNCH_CATS = ("cuda_runtime", "cuda_driver")
@@ -122,7 +127,32 @@ def summary(gaps: list[dict], steps: float) -> dict:
     }
 
 
-def markdown(s: dict, top: int) -> str:
+def device_time(events: list[dict], steps: float) -> dict:
+    """Per step, from the trace's device events: `busy_ms` (their union), `span_ms` (first
+    start to last end), `device_ms` (kernel, copy and memset time by kind) and
+    `other_kernels` (`profile_step.tally_kernels`'s: what no kind claims)."""
+    device = [e for e in events if e.get("cat") in KERNEL_CATS]
+    if not device:
+        return {"busy_ms": 0.0, "span_ms": 0.0, "device_ms": {}, "other_kernels": {}}
+    spans = merge_intervals([(float(e["ts"]), event_end(e)) for e in device])
+    tally = tally_kernels([(event_name(e), float(e.get("dur", 0)) / 1e3) for e in device], steps)
+    return {
+        "busy_ms": sum(b - a for a, b in spans) / steps / 1e3,
+        "span_ms": (spans[-1][1] - spans[0][0]) / steps / 1e3,
+        "device_ms": tally["device_ms"],
+        "other_kernels": tally["other_kernels"],
+    }
+
+
+def short_kernel(name: str) -> str:
+    """A PyTorch kernel's name without the namespaces that make its first 100 characters
+    alike (`void at::native::(anonymous namespace)::...`)."""
+    for noise in ("void ", "at::native::", "(anonymous namespace)::", "c10::"):
+        name = name.replace(noise, "")
+    return name
+
+
+def markdown(s: dict, top: int, busy: dict | None = None) -> str:
     lines = [
         f"### Device idle by cause: {s['idle_ms']:.3f} ms a step over {s['steps']:g} steps",
         "",
@@ -135,6 +165,22 @@ def markdown(s: dict, top: int) -> str:
     if s["host_doing"]:
         lines += ["", "| host op at a host-late gap | idle ms/step |", "|---|---:|"]
         lines += [f"| `{k[:80]}` | {v:.3f} |" for k, v in s["host_doing"][:top]]
+    if busy and busy["span_ms"] > 0:
+        share = 100 * busy["busy_ms"] / busy["span_ms"]
+        lines += [
+            "",
+            f"Device busy {busy['busy_ms']:.3f} of {busy['span_ms']:.3f} ms a step ({share:.0f} %"
+            " of the profiled span, under the profiler).",
+            "",
+            "| device time by op | ms/step |",
+            "|---|---:|",
+        ]
+        lines += [f"| {k} | {v:.3f} |" for k, v in busy["device_ms"].items()]
+        lines += ["", '| "torch other" kernel | ms/step | launches/step |', "|---|---:|---:|"]
+        lines += [
+            f"| `{short_kernel(k)[:100]}` | {v['ms']:.3f} | {v['launches']:.1f} |"
+            for k, v in list(busy["other_kernels"].items())[:top]
+        ]
     return "\n".join(lines) + "\n"
 
 
@@ -162,9 +208,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--top must be >= 1 and --steps > 0")
     check_table_out(args.out)
     path = Path(args.trace)
-    gaps = classify_gaps(load_trace(path))
+    events = load_trace(path)
     steps = args.steps if args.steps is not None else profiled_steps(path)
-    return print_or_write_table(markdown(summary(gaps, steps), args.top), args.out)
+    md = markdown(summary(classify_gaps(events), steps), args.top, device_time(events, steps))
+    return print_or_write_table(md, args.out)
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:

@@ -487,16 +487,23 @@ def test_device_gaps_names_what_the_host_was_doing_when_the_device_ran_dry():
         return FunctionEvent(i, name, 0, t0, t1, use_device="cuda", device_type=kind, **kw)
 
     cuda = DeviceType.CUDA
+    RELU = "void at::native::vectorized_elementwise_kernel<8, launch_clamp_scalar::{lambda()#1}>"
     evs = [
         event(0, "sample_rays", 0, 50),
         event(1, "cudaGraphLaunch", 5, 8),
         event(2, "_march_kernel_forward", 10, 30, cuda),
         event(3, "sample_rays", 10, 40, cuda, is_user_annotation=True),  # a range's own row
         event(4, "nvjet_sm90_gemm", 40, 45, cuda),
+        event(5, "Optimizer.step#Adam.step", 45, 60, cuda),  # a range: no kernel
+        event(6, RELU, 45, 47, cuda),  # a kernel with "#" in its template name
     ]
     kernels, spans, host_events = ps.split_events(evs)
-    assert kernels == [("_march_kernel_forward", 0.02), ("nvjet_sm90_gemm", 0.005)]
-    assert spans == [(10, 30, "_march_kernel_forward"), (40, 45, "nvjet_sm90_gemm")]
+    assert kernels == [
+        ("_march_kernel_forward", 0.02), ("nvjet_sm90_gemm", 0.005), (RELU, 0.002)
+    ]
+    assert spans == [
+        (10, 30, "_march_kernel_forward"), (40, 45, "nvjet_sm90_gemm"), (45, 47, RELU)
+    ]
     assert host_events == [(0, 50, "sample_rays", 0), (5, 8, "cudaGraphLaunch", 0)]
     split = device_gaps(spans, host_events, 1)
     assert split["idle_by_host_ms"] == {"sample_rays": 0.01}
@@ -1287,6 +1294,11 @@ def test_trace_gaps_puts_each_device_gap_in_one_class(tmp_path, capsys):
     assert trace_gaps.main([str(path), "--out", str(out)]) == 0
     md = out.read_text()
     assert "0.017 ms a step over 2 steps" in md and "| queued | 0.002 | 0.5 |" in md
+    # the device's own time: busy is the union of its events, every kernel in a kind
+    busy = trace_gaps.device_time(trace_gaps.load_trace(path), 2.0)
+    assert busy["busy_ms"] == pytest.approx(23 / 2e3) and busy["span_ms"] == pytest.approx(0.028)
+    assert busy["device_ms"] == pytest.approx({"torch other": 17 / 2e3, "march": 0.003})
+    assert "(41 % of the profiled span" in md and "| march | 0.003 |" in md
     capsys.readouterr()
     for bad in (
         [str(tmp_path / "none.json.gz")],
