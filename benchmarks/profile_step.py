@@ -337,7 +337,11 @@ def tally_kernels(kernels: list[tuple[str, float]], steps: int, top: int = 15) -
 
 def _top_cpu_ops(prof, steps: int, n: int = 12) -> dict[str, float]:
     """The `n` ops with the most self CPU time, ms per step (named ranges left out)."""
-    ops = [ev for ev in prof.key_averages() if ev.key not in STAGES and not _RANGE_NAME.fullmatch(ev.key)]
+    ops = [
+        ev
+        for ev in prof.key_averages()
+        if ev.key not in STAGES and not _RANGE_NAME.fullmatch(ev.key)
+    ]
     ops.sort(key=lambda ev: -ev.self_cpu_time_total)
     return {ev.key[:80]: ev.self_cpu_time_total / 1e3 / steps for ev in ops[:n]}
 

@@ -498,12 +498,8 @@ def test_device_gaps_names_what_the_host_was_doing_when_the_device_ran_dry():
         event(6, RELU, 45, 47, cuda),  # a kernel with "#" in its template name
     ]
     kernels, spans, host_events = ps.split_events(evs)
-    assert kernels == [
-        ("_march_kernel_forward", 0.02), ("nvjet_sm90_gemm", 0.005), (RELU, 0.002)
-    ]
-    assert spans == [
-        (10, 30, "_march_kernel_forward"), (40, 45, "nvjet_sm90_gemm"), (45, 47, RELU)
-    ]
+    assert kernels == [("_march_kernel_forward", 0.02), ("nvjet_sm90_gemm", 0.005), (RELU, 0.002)]
+    assert spans == [(10, 30, "_march_kernel_forward"), (40, 45, "nvjet_sm90_gemm"), (45, 47, RELU)]
     assert host_events == [(0, 50, "sample_rays", 0), (5, 8, "cudaGraphLaunch", 0)]
     split = device_gaps(spans, host_events, 1)
     assert split["idle_by_host_ms"] == {"sample_rays": 0.01}
