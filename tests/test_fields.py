@@ -354,6 +354,33 @@ def test_ngp_update_only_every_update_every_steps(make, monkeypatch):
     assert f.grid.threshold.item() >= 0  # real updates ran (the initial threshold is -0.5)
 
 
+def test_ngp_fused_relu_renders_and_trains_as_the_plain_field(make):
+    """fused_relu (each hidden ReLU in its GEMM) is how the MLPs run, not what they are: the
+    same parameters render the same colours and depths with the same gradients (within what
+    the plain field differs from itself by), and the option is in the field's saved config."""
+    plain, fused, again = make("ngp"), make("ngp", fused_relu=True), make("ngp")
+    fused.load_state_dict(plain.state_dict())
+    assert fused.config_dict()["options"]["network"]["fused_relu"] is True
+    assert fused.density_net.fused_relu and fused.color_net.fused_relu
+    o, d = hit_rays(48)
+    outs, grads = [], []
+    for f in (plain, fused, again):
+        out = f.render(o, d, near=1e-4, background=BG, train=True)
+        loss = out["rgb"].square().sum() + out["depth"].sum()
+        grads.append(torch.autograd.grad(loss, list(f.parameters()), allow_unused=True))
+        outs.append(out)
+    torch.testing.assert_close(outs[0]["rgb"], outs[1]["rgb"], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(outs[0]["depth"], outs[1]["depth"], rtol=1e-5, atol=1e-5)
+    # the training render's backward sums by atomics: the plain field against itself sets
+    # the tolerance
+    for a, b, c in zip(*grads, strict=True):
+        assert (a is None) == (b is None) == (c is None)
+        if a is not None:
+            noise = (c - a).abs().max().item()
+            assert (b - a).abs().max().item() <= 3 * noise + 1e-6
+    assert any(g is not None and g.abs().sum() > 0 for g in grads[1])
+
+
 def test_ngp_update_offset_moves_the_updates_but_keeps_step_0(make, monkeypatch):
     """update_offset: the grid starts empty, so step 0 updates; then offset past each
     multiple of update_every (modulo it: 7 with 5 is 2)."""

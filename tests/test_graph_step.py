@@ -86,6 +86,22 @@ def test_captured_step_matches_the_device_step(scene, tmp_path, copies):
     assert g.captures == before + copies
 
 
+@pytest.mark.skipif(not CUDA, reason="no CUDA: the fused epilogue is cuBLASLt's")
+def test_fused_relu_steps_are_the_plain_mlps_steps_captured_or_not(scene, tmp_path):
+    """fused_relu on the GPU (bf16 autocast, the GEMM's ReLU epilogue) trains as the plain
+    MLPs do, eagerly and replayed from a graph."""
+    steps = 3 * WARMUP + 6
+    fused = {**NGP_TINY, "fused_relu": True}
+    a = losses(make(scene, tmp_path / "plain", "device", "cuda", steps=steps), steps)
+    b = losses(
+        make(scene, tmp_path / "f", "device", "cuda", steps=steps, backend_options=fused), steps
+    )
+    graph = make(scene, tmp_path / "g", "graph", "cuda", steps=steps, backend_options=fused)
+    c = losses(graph, steps)
+    assert graph.graph.failure is None and graph.graph.replays >= 3
+    assert b == pytest.approx(a, rel=2e-2) and c == pytest.approx(b, rel=1e-4)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_graph_step_flags_an_overflowing_sample_buffer(scene, tmp_path, device):
     """A buffer too small for the batch drops whole pixels and says so on the graphed step as

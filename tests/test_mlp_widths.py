@@ -10,7 +10,15 @@ import pytest
 import torch
 
 from fastenerf.data.formats.native import load_scene
-from fastenerf.fields.mlp import ALIGN, ColorMLP, _as_words, _word_for, concat_rows, mlp
+from fastenerf.fields.mlp import (
+    ALIGN,
+    ColorMLP,
+    _as_words,
+    _word_for,
+    concat_rows,
+    linear_relu,
+    mlp,
+)
 from fastenerf.run import CHECKPOINT
 from fastenerf.train import Trainer
 from tests.test_train import tiny_cfg
@@ -209,3 +217,52 @@ def test_the_colour_mlp_concatenates_the_fields_own_sh_as_words():
         grads.append(g)
     assert torch.isfinite(grads[0]).all() and grads[0].abs().sum() > 0
     assert torch.equal(grads[0], grads[1])
+
+
+def test_linear_relu_is_relu_of_linear_values_and_gradients():
+    """The fused layer (fields/mlp.py: one `_addmm_activation`, its own backward) against
+    relu(F.linear) in float64: values and both gradients, a gradient of zero where the
+    pre-activation is negative. Fails if the backward's mask or either GEMM is wrong."""
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(40, 12, generator=g, dtype=torch.float64, requires_grad=True)
+    w = torch.randn(9, 12, generator=g, dtype=torch.float64, requires_grad=True)
+    y = linear_relu(x, w)
+    ref = torch.relu(torch.nn.functional.linear(x, w))
+    assert (ref == 0).any() and (ref > 0).any()  # both sides of the kink are exercised
+    torch.testing.assert_close(y, ref, rtol=1e-12, atol=1e-12)
+    up = torch.randn(y.shape, generator=g, dtype=torch.float64)
+    for a, b in zip(
+        torch.autograd.grad(y, [x, w], up), torch.autograd.grad(ref, [x, w], up), strict=True
+    ):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    assert torch.autograd.gradcheck(linear_relu, (x[:5].detach().requires_grad_(), w))
+
+
+@pytest.mark.parametrize("geo", [15, 10])
+def test_fused_relu_mlps_are_the_same_networks(geo):
+    """`fused_relu` changes how the layers run, not the network: the same state dict, the same
+    outputs and gradients (float64) for the density MLP's shape and the padded colour MLP,
+    and under bf16 autocast the same output dtype and float32 weight gradients."""
+    torch.manual_seed(5)
+    plain = ColorMLP(geo, 32).double()
+    torch.manual_seed(5)
+    fused = ColorMLP(geo, 32, fused_relu=True).double()
+    assert plain.state_dict().keys() == fused.state_dict().keys()
+    h, sh = _inputs(29, geo)
+    ya, yb = plain(h, sh), fused(h, sh)
+    torch.testing.assert_close(ya, yb, rtol=1e-12, atol=1e-12)
+    ga = torch.autograd.grad(ya.sum(), [h, *plain.parameters()])
+    gb = torch.autograd.grad(yb.sum(), [h, *fused.parameters()])
+    for a, b in zip(ga, gb, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    dens = mlp(32, 16, 1 + geo, 1, fused_relu=True)
+    dens.load_state_dict(mlp(32, 16, 1 + geo, 1).state_dict())  # a plain checkpoint loads
+    x = torch.randn(64, 32)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        y = dens(x)
+        dens.fused_relu = False
+        y_plain = dens(x)
+    assert y.dtype == y_plain.dtype == torch.bfloat16
+    torch.testing.assert_close(y.float(), y_plain.float(), rtol=2e-2, atol=2e-2)
+    y.float().sum().backward()
+    assert all(p.grad is not None and p.grad.dtype == torch.float32 for p in dens.parameters())

@@ -18,6 +18,12 @@ The weights on the masked and the zero inputs and of the unused outputs start at
 gradient (a mask, a zero input, an output nothing reads), so the padded MLP computes what the
 unpadded one of the same initial weights does; a checkpoint of the unpadded MLP loads into it,
 padded with zeros.
+
+With `fused_relu` each hidden layer is one GEMM whose epilogue applies the ReLU (cuBLASLt's
+RELU_BIAS, reached through `torch._addmm_activation` with a zero bias) instead of a GEMM and
+a separate ReLU kernel that reads and writes every sample's activations again: the bf16
+ReLUs were 0.11–0.20 ms of a ~3.3 ms training step on an H200 (benchmarks/RESULTS.md, the
+thirty-eighth session). The backward is the same three kernels either way.
 """
 
 from __future__ import annotations
@@ -36,7 +42,77 @@ def aligned(n: int) -> int:
     return -(-n // ALIGN) * ALIGN
 
 
-def mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int) -> nn.Sequential:
+_ZERO_BIAS: dict[tuple, torch.Tensor] = {}
+
+
+def _zero_bias(n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """A zero (n,) vector, made once per (n, dtype, device): a captured step reuses it rather
+    than filling a new one each replay."""
+    key = (n, dtype, device)
+    if key not in _ZERO_BIAS:
+        _ZERO_BIAS[key] = torch.zeros(n, dtype=dtype, device=device)
+    return _ZERO_BIAS[key]
+
+
+class _LinearReLU(torch.autograd.Function):
+    """relu(x @ wᵀ) as one `_addmm_activation` (no autograd formula of its own)."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        y = torch._addmm_activation(_zero_bias(w.shape[0], x.dtype, x.device), x, w.t())
+        ctx.save_for_backward(x, w, y)
+        return y
+
+    @staticmethod
+    def backward(ctx, g: torch.Tensor):
+        x, w, y = ctx.saved_tensors
+        gy = torch.ops.aten.threshold_backward(g, y, 0)  # what nn.ReLU's backward runs
+        gx = gy.mm(w) if ctx.needs_input_grad[0] else None
+        gw = gy.t().mm(x) if ctx.needs_input_grad[1] else None
+        return gx, gw
+
+
+def linear_relu(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """relu(F.linear(x, w)), x (N, in), w (out, in) -> (N, out), with the ReLU in the GEMM;
+    computed in autocast's dtype where autocast is on (as F.linear would), else in w's."""
+    kind = x.device.type
+    dt = torch.get_autocast_dtype(kind) if torch.is_autocast_enabled(kind) else w.dtype
+    x = x if x.dtype == dt else x.to(dt)
+    w = w if w.dtype == dt else w.to(dt)
+    with torch.autocast(kind, enabled=False):
+        return _LinearReLU.apply(x, w)
+
+
+class MLP(nn.Sequential):
+    """Linear (no bias) + ReLU layers and a linear output, run with each hidden layer's ReLU
+    fused into its GEMM when `fused_relu` (module docstring); the same parameters and state
+    dict either way."""
+
+    def __init__(self, *layers: nn.Module, fused_relu: bool = False):
+        super().__init__(*layers)
+        self.fused_relu = fused_relu
+
+    def run(self, x: torch.Tensor, first_weight: torch.Tensor | None = None) -> torch.Tensor:
+        """The layers on x (N, in) -> (N, out); first_weight: the first layer's weight to use
+        in its place (ColorMLP's masked one)."""
+        layers = list(self)
+        i = 0
+        while i < len(layers):
+            layer, w = layers[i], first_weight if i == 0 else None
+            if self.fused_relu and i + 1 < len(layers) and isinstance(layers[i + 1], nn.ReLU):
+                x = linear_relu(x, layer.weight if w is None else w)
+                i += 2
+                continue
+            # unfused, each module is called (its hooks run), as nn.Sequential would
+            x = layer(x) if w is None else F.linear(x, w)
+            i += 1
+        return x
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.run(x)
+
+
+def mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int, fused_relu: bool = False) -> MLP:
     """Linear (no bias) + ReLU per hidden layer, then a linear output: (N, n_in) -> (N, n_out)."""
     # No biases, like tiny-cuda-nn's fully fused MLPs: the hash features carry the offsets.
     layers: list[nn.Module] = []
@@ -45,7 +121,7 @@ def mlp(n_in: int, hidden: int, n_out: int, n_hidden_layers: int) -> nn.Sequenti
         layers += [nn.Linear(d, hidden, bias=False), nn.ReLU(inplace=True)]
         d = hidden
     layers.append(nn.Linear(d, n_out, bias=False))
-    return nn.Sequential(*layers)
+    return MLP(*layers, fused_relu=fused_relu)
 
 
 _WORDS = ((torch.int64, 8), (torch.int32, 4), (torch.int16, 2))  # (dtype, bytes), widest first
@@ -98,7 +174,7 @@ def concat_rows(parts: list[torch.Tensor]) -> torch.Tensor:
     return _ConcatRows.apply(*parts)
 
 
-class ColorMLP(nn.Sequential):
+class ColorMLP(MLP):
     """Colour logits (N, 3) from the density MLP's output h (N, 1 + geo_features), σ logit
     first, and the view directions' SH (N, 16); two hidden layers of `hidden`, no biases.
 
@@ -108,9 +184,9 @@ class ColorMLP(nn.Sequential):
     layers' dtype (bf16 under autocast), a view of the padded one's first 3 columns.
     """
 
-    def __init__(self, geo_features: int, hidden: int):
+    def __init__(self, geo_features: int, hidden: int, fused_relu: bool = False):
         plain = mlp(geo_features + N_SH, hidden, N_RGB, 2)
-        super().__init__(*plain)
+        super().__init__(*plain, fused_relu=fused_relu)
         self.n_h = 1 + geo_features
         self.n_pad = aligned(self.n_h + N_SH) - (self.n_h + N_SH)
         with torch.no_grad():
@@ -156,10 +232,7 @@ class ColorMLP(nn.Sequential):
         parts = [h, sh.to(h.dtype, memory_format=torch.contiguous_format)]
         if self.n_pad:
             parts.append(h.new_zeros(()).expand(h.shape[0], self.n_pad))
-        layers = iter(self)
-        y = F.linear(concat_rows(parts), next(layers).weight * self.w_mask)
-        for layer in layers:
-            y = layer(y)
+        y = self.run(concat_rows(parts), first_weight=self[0].weight * self.w_mask)
         return y[:, :N_RGB]
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
