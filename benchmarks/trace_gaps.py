@@ -185,11 +185,15 @@ def markdown(s: dict, top: int, busy: dict | None = None) -> str:
 
 
 def profiled_steps(trace: Path) -> float:
-    """The profiled steps of the `profile_step.json` beside the trace's run folder, else 1."""
-    meta = trace.resolve().parent.parent / "profile_step.json"
+    """The profiled steps of the `profile_step.json` beside the trace's run folder (with
+    several variants, the one whose folder holds the trace), else 1."""
+    run = trace.resolve().parent
     try:
-        steps = float(json.loads(meta.read_text()).get("steps", 1))
-    except (OSError, ValueError, AttributeError):
+        meta = json.loads((run.parent / "profile_step.json").read_text())
+        rows = meta.get("variants") or [meta]
+        mine = [r for r in rows if str(r.get("backend", "")).endswith(f"variant {run.name}")]
+        steps = float((mine or rows)[0].get("steps", 1))
+    except (OSError, ValueError, AttributeError, IndexError, TypeError):
         return 1.0
     return steps if steps > 0 else 1.0
 

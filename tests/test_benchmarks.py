@@ -1283,6 +1283,15 @@ def test_trace_gaps_puts_each_device_gap_in_one_class(tmp_path, capsys):
     ]
     assert gaps[0]["host"] == "sample_rays" and gaps[0]["launch"] == "cudaMemcpyAsync"
     assert trace_gaps.profiled_steps(path) == 2.0
+    # several variants side by side: the steps of the variant whose folder holds the trace
+    side = tmp_path / "side"
+    (side / "fr").mkdir(parents=True)
+    rows = [
+        {"backend": "ngp, variant base", "steps": 3},
+        {"backend": "ngp, variant fr", "steps": 4},
+    ]
+    (side / "profile_step.json").write_text(json.dumps({"variants": rows}))
+    assert trace_gaps.profiled_steps(side / "fr" / "trace.json.gz") == 4.0
     s = trace_gaps.summary(gaps, 2.0)
     assert s["classes"][0] == ("host late", 0.01, 0.5)
     assert s["host_doing"] == [("sample_rays", 0.01)]
