@@ -21,9 +21,9 @@ padded with zeros.
 
 With `fused_relu` each hidden layer is one GEMM whose epilogue applies the ReLU (cuBLASLt's
 RELU_BIAS, reached through `torch._addmm_activation` with a zero bias) instead of a GEMM and
-a separate ReLU kernel that reads and writes every sample's activations again: the bf16
-ReLUs were 0.11–0.20 ms of a ~3.3 ms training step on an H200 (benchmarks/RESULTS.md, the
-thirty-eighth session). The backward is the same three kernels either way.
+a separate ReLU kernel that reads and writes every sample's activations again (what that
+pass costs a training step: benchmarks/RESULTS.md, the thirty-eighth session). The backward
+is the same three kernels either way.
 """
 
 from __future__ import annotations
