@@ -104,8 +104,8 @@ def kernel_kind(name: str) -> str:
 
 # A profiler range named Class.method#Class.method (Optimizer.step#Adam.step). A bare "#" is
 # not enough: PyTorch's element-wise kernels carry "{lambda()#1}" in their template names, and
-# dropping those left ~0.9 ms/step of bf16 activations out of every GPU profile before the
-# thirty-eighth session.
+# dropping those left the bf16 activations out of every GPU profile before the thirty-eighth
+# session (benchmarks/RESULTS.md).
 _RANGE_NAME = re.compile(r"[\w.]+#[\w.]+")
 
 
