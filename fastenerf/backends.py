@@ -38,10 +38,12 @@ class NetworkOptions:
     max_log_density: float = field(default=15.0, metadata={"min": 1.0, "max": 80.0})
     """The truncated exp's clamp: σ ≤ e^max_log_density (15: ≈ 3.3e6, DESIGN §5), computed
     in float32 whatever the MLP's autocast dtype."""
-    fused_relu: bool = False
+    fused_relu: bool = True
     """Each hidden layer's ReLU in its GEMM's epilogue (cuBLASLt through
     `torch._addmm_activation`; fields/mlp.py): the same function without the separate
-    activation kernel's pass over every sample. False: a GEMM, then a ReLU kernel."""
+    activation kernel's pass over every sample (measured on every built-in scene and the
+    mesh scene: benchmarks/RESULTS.md, the thirty-ninth session). False: a GEMM, then a ReLU
+    kernel, each module called as nn.Sequential would."""
 
 
 @dataclass

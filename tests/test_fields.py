@@ -275,12 +275,16 @@ def test_ngp_density_finite_for_huge_logits(make):
     assert torch.allclose(sigma, torch.full((64,), math.exp(15.0)), rtol=1e-6, atol=0)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_bf16_autocast_render_is_finite_and_float32(make, backend):
-    f = make(backend)
-    first = f.density_net[0] if backend == "ngp" else f.fine.layers[0]
+@pytest.mark.parametrize(
+    "backend, options",
+    [(b, {}) for b in BACKENDS] + [("ngp", {"fused_relu": False})],
+)
+def test_bf16_autocast_render_is_finite_and_float32(make, backend, options):
+    f = make(backend, **options)
+    # the density MLP's output layer: a module call with fused hidden layers as without
+    layer = f.density_net[-1] if backend == "ngp" else f.fine.layers[0]
     seen = []
-    first.register_forward_hook(lambda m, i, o: seen.append(o.dtype))
+    layer.register_forward_hook(lambda m, i, o: seen.append(o.dtype))
     o, d = hit_rays(16)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         out = f.render(o, d, near=1e-4, background=BG, train=True)
@@ -358,10 +362,12 @@ def test_ngp_fused_relu_renders_and_trains_as_the_plain_field(make):
     """fused_relu (each hidden ReLU in its GEMM) is how the MLPs run, not what they are: the
     same parameters render the same colours and depths with the same gradients (within what
     the plain field differs from itself by), and the option is in the field's saved config."""
-    plain, fused, again = make("ngp"), make("ngp", fused_relu=True), make("ngp")
+    plain, fused, again = (make("ngp", fused_relu=f) for f in (False, True, False))
     fused.load_state_dict(plain.state_dict())
     assert fused.config_dict()["options"]["network"]["fused_relu"] is True
     assert fused.density_net.fused_relu and fused.color_net.fused_relu
+    assert not plain.density_net.fused_relu and not plain.color_net.fused_relu
+    assert make("ngp").density_net.fused_relu  # the default
     o, d = hit_rays(48)
     outs, grads = [], []
     for f in (plain, fused, again):
@@ -846,3 +852,4 @@ def test_new_gpu_runs_compact_where_it_pays_cpu_runs_do_not():
     cfg = train_preset("fast", "ngp", device="cuda", minutes=1.0)
     assert cfg.backend_options["compaction_auto"] is True
     assert "compaction_auto" not in train_preset("fast", "ngp", device="cpu").backend_options
+

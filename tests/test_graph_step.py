@@ -91,8 +91,11 @@ def test_fused_relu_steps_are_the_plain_mlps_steps_captured_or_not(scene, tmp_pa
     """fused_relu on the GPU (bf16 autocast, the GEMM's ReLU epilogue) trains as the plain
     MLPs do, eagerly and replayed from a graph."""
     steps = 3 * WARMUP + 6
-    fused = {**NGP_TINY, "fused_relu": True}
-    a = losses(make(scene, tmp_path / "plain", "device", "cuda", steps=steps), steps)
+    fused, plain = ({**NGP_TINY, "fused_relu": f} for f in (True, False))
+    a = losses(
+        make(scene, tmp_path / "plain", "device", "cuda", steps=steps, backend_options=plain),
+        steps,
+    )
     b = losses(
         make(scene, tmp_path / "f", "device", "cuda", steps=steps, backend_options=fused), steps
     )
