@@ -5,12 +5,14 @@ errors against a float64 reference, a minimal-bytes estimate, the achieved GB/s 
 measured copy bandwidth (DESIGN §8). They also run on CPU at tiny sizes (a smoke test does).
 ``python -m benchmarks.kernels_render --device cuda`` prints the results as JSON.
 
-Compositing is timed in both Warp layouts (`composite(..., layout="ray" | "block")`: a thread
-per ray, or 32 threads per ray with tile scans), each with its speed-up over PyTorch.
+Compositing and the distortion loss are timed in both Warp layouts (`composite(...,
+layout="ray" | "block")`, `distortion_loss(...)`: a thread per ray, or 32 threads per ray with
+tile scans), each with its speed-up over PyTorch.
 
 Plain-PyTorch baselines (`benchmarks/render_torch.py`):
   - compositing: packed samples scattered into a dense (rays x max samples) array, exclusive
     transmittance with cumprod, early-stop mask, segment sums with index_add; autograd backward;
+  - the distortion loss: segmented prefix sums over the packed samples, index_add per ray;
   - marching: dense uniform steps over every ray's box interval, occupancy lookup of each
     midpoint in the dense bool grid, compaction with boolean masks (the same intervals as the
     Warp marcher with cone_angle = 0 and no jitter, so sample counts must agree).
@@ -33,11 +35,11 @@ import math
 import torch
 
 from benchmarks.cli import benchmark_main
-from benchmarks.render_torch import torch_composite, torch_march
+from benchmarks.render_torch import torch_composite, torch_distortion, torch_march
 from benchmarks.timing import copy_bandwidth_gbs, time_ms
 from fastenerf.errors import require
 from fastenerf.io import atomic_path
-from fastenerf.kernels.composite import composite, resolve_layout
+from fastenerf.kernels.composite import composite, distortion_loss, resolve_layout
 from fastenerf.kernels.occupancy import OccupancyGrid
 from fastenerf.kernels.raymarch import march_rays
 from fastenerf.kernels.raymarch_fixed import empty_fixed_samples, march_rays_fixed
@@ -494,13 +496,54 @@ def compare_outputs(a: dict, b: dict) -> dict:
 DUMP_FILE = OutputKind("kernel outputs file", False, lambda p: p.suffix.lower() == ".pt")
 
 
+def bench_distortion(device="cuda", n_rays=2**16, mean_samples=64, repeats=20) -> dict:
+    """The distortion loss forward / forward+backward in both Warp layouts ("ray", "block")
+    side by side against plain PyTorch, same device: `L_fwd_ms`, `L_fwdbwd_ms`,
+    `speedup_L_fwdbwd` (PyTorch over Warp), `L_max_rel_err_loss` and `L_max_rel_err_grad`
+    (against float64), and `block_over_ray_fwdbwd` (the block layout's time over the ray
+    layout's)."""
+    _, _, t_s, t_e, packed = _packed_case(n_rays, mean_samples, device)
+    S = t_s.shape[0]
+    w = torch.rand(S, generator=torch.Generator().manual_seed(1)).to(device) * 0.1
+    g = torch.randn(n_rays, generator=torch.Generator().manual_seed(2)).to(device)
+    r = {"device": str(device), "n_rays": n_rays, "n_samples": S}
+    fns = {L: functools.partial(distortion_loss, layout=L) for L in ("ray", "block")}
+    fns["torch"] = torch_distortion
+
+    def run(fn, backward):
+        x = w.clone().requires_grad_(backward)
+        loss = fn(x, t_s, t_e, packed)
+        if backward:
+            torch.autograd.grad((loss * g).sum(), x)
+
+    for name, fn in fns.items():
+        with torch.no_grad():
+            r[f"{name}_fwd_ms"] = _time_ms(lambda fn=fn: run(fn, False), device, repeats)
+        r[f"{name}_fwdbwd_ms"] = _time_ms(lambda fn=fn: run(fn, True), device, repeats)
+    w64 = w.double().requires_grad_()
+    ref = torch_distortion(w64, t_s.double(), t_e.double(), packed)
+    (g64,) = torch.autograd.grad((ref * g.double()).sum(), w64)
+    for L in ("ray", "block"):
+        x = w.clone().requires_grad_()
+        loss = fns[L](x, t_s, t_e, packed)
+        (gx,) = torch.autograd.grad((loss * g).sum(), x)
+        rel = (loss.double() - ref).abs().max() / ref.abs().max()
+        r[f"{L}_max_rel_err_loss"] = rel.item()
+        r[f"{L}_max_rel_err_grad"] = ((gx.double() - g64).abs().max() / g64.abs().max()).item()
+        r[f"speedup_{L}_fwdbwd"] = r["torch_fwdbwd_ms"] / r[f"{L}_fwdbwd_ms"]
+    r["block_over_ray_fwdbwd"] = r["block_fwdbwd_ms"] / r["ray_fwdbwd_ms"]
+    return r
+
+
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--n-rays", type=int, default=None)
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--mean-samples", type=int, default=64, help="composite: samples per ray")
     ap.add_argument(
-        "--only", choices=("composite", "march_composite"), help="run one benchmark, not both"
+        "--only",
+        choices=("composite", "distortion", "march_composite"),
+        help="run one benchmark, not all three",
     )
     ap.add_argument("--dump", help="also save kernel_outputs() here, a .pt file (compare_outputs)")
 
@@ -516,6 +559,8 @@ def run(a: argparse.Namespace) -> int:
     res = {}
     if a.only in (None, "composite"):
         res["composite"] = bench_composite(a.device, n, a.mean_samples, repeats=a.repeats)
+    if a.only in (None, "distortion"):
+        res["distortion"] = bench_distortion(a.device, n, a.mean_samples, repeats=a.repeats)
     if a.only in (None, "march_composite"):
         res["march_composite"] = bench_march_composite(
             a.device, n, resolution=128 if cuda else 64, repeats=a.repeats

@@ -6,7 +6,7 @@ defaults. The field classes themselves live in `fastenerf.fields.<name>` (import
 this module and `--help` load neither torch nor Warp).
 
 Options come in sections, as instant-ngp's config (encoding / network / sampler):
-    ngp      encoding (kernels' HashGridConfig), network, marcher, occupancy
+    ngp      encoding (kernels' HashGridConfig), network, marcher, occupancy, compositing
     vanilla  one flat section (VanillaOptions)
 `parse_options` takes a JSON object nested by section (`{"marcher": {"cone_angle": 0}}`) or
 flat (`{"cone_angle": 0}`, what older run folders hold): a flat key goes to its section.
@@ -144,6 +144,18 @@ class OccupancyOptions:
 
 
 @dataclass
+class CompositingOptions:
+    """Compositing the marched samples, and the distortion loss over them
+    (kernels/composite.py)."""
+
+    distortion_layout: Literal["auto", "ray", "block"] = "auto"
+    """How the distortion loss's kernels run: "ray", one thread per ray; "block", 32 threads
+    per ray with tile scans over chunks of samples (kernels/distortion_block.py); "auto",
+    `DISTORTION_CUDA_AUTO` on CUDA and "ray" on the CPU. The same loss and gradient up to
+    float32 rounding."""
+
+
+@dataclass
 class NGPOptions:
     """Accuracy/speed knobs of the ngp backend, by component."""
 
@@ -155,6 +167,8 @@ class NGPOptions:
     """Ray marching."""
     occupancy: OccupancyOptions = field(default_factory=OccupancyOptions)
     """Empty-space skipping."""
+    compositing: CompositingOptions = field(default_factory=CompositingOptions)
+    """Compositing and the distortion loss."""
 
 
 @dataclass

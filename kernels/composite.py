@@ -39,6 +39,7 @@ import warp as wp
 from .alpha import one_minus_exp_neg, optical_depth, ray_output_grads
 from .common import as_float32, fast_view, init, launch, launch_tiled
 from .composite_block import BLOCK_DIM, composite_bwd_block_kernel, composite_fwd_block
+from .distortion_block import distortion_bwd_block, distortion_fwd_block
 
 T_MIN = 1e-4
 """Transmittance below which a ray stops (instant-ngp's early termination)."""
@@ -210,13 +211,18 @@ scene and the mesh scene at the same PSNR (benchmarks/RESULTS.md); the CPU alway
 (its blocks are emulated)."""
 
 
-def resolve_layout(layout: Layout, device: torch.device) -> str:
-    """The kernels `layout` stands for on `device`, "ray" or "block" ("auto": `CUDA_AUTO` on
+DISTORTION_CUDA_AUTO = "ray"
+"""What "auto" takes on CUDA for the distortion loss: "ray" until "block" is measured in
+training on every built-in scene and the mesh scene."""
+
+
+def resolve_layout(layout: Layout, device: torch.device, cuda_auto: str = CUDA_AUTO) -> str:
+    """The kernels `layout` stands for on `device`, "ray" or "block" ("auto": `cuda_auto` on
     CUDA, "ray" elsewhere). Raises ValueError for any other name."""
     if layout not in LAYOUTS:
         raise ValueError(f"layout must be one of {LAYOUTS}, got {layout!r}")
     if layout == "auto":
-        return CUDA_AUTO if device.type == "cuda" else "ray"
+        return cuda_auto if device.type == "cuda" else "ray"
     return layout
 
 
@@ -428,27 +434,17 @@ def _distortion_bwd(
 
 class _Distortion(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, weights, t_starts, t_ends, packed_info):
+    def forward(ctx, weights, t_starts, t_ends, packed_info, layout):
         init()
+        ctx.layout = layout
         weights, t_starts, t_ends = (as_float32(t) for t in (weights, t_starts, t_ends))
         packed_info = packed_info.contiguous()
         R, dev = packed_info.shape[0], weights.device
         loss = _empty(R, dtype=torch.float32, device=dev)
         totals = _empty(R, 2, dtype=torch.float32, device=dev)
-        if R > 0:
-            launch(
-                _distortion_fwd,
-                R,
-                weights,
-                [
-                    weights,
-                    t_starts,
-                    t_ends,
-                    fast_view(packed_info, wp.vec2i),
-                    loss,
-                    fast_view(totals, wp.vec2),
-                ],
-            )
+        pi, tot = fast_view(packed_info, wp.vec2i), fast_view(totals, wp.vec2)
+        args = [weights, t_starts, t_ends, pi, loss, tot]
+        _launch(layout, _distortion_fwd, distortion_fwd_block, R, weights, args)
         ctx.save_for_backward(weights, t_starts, t_ends, packed_info, totals)
         return loss
 
@@ -457,22 +453,12 @@ class _Distortion(torch.autograd.Function):
         weights, t_starts, t_ends, packed_info, totals = ctx.saved_tensors
         R = packed_info.shape[0]
         grad = _zeros(weights.shape[0], dtype=torch.float32, device=weights.device)
-        if R > 0:
-            launch(
-                _distortion_bwd,
-                R,
-                weights,
-                [
-                    weights,
-                    t_starts,
-                    t_ends,
-                    fast_view(packed_info, wp.vec2i),
-                    fast_view(totals, wp.vec2),
-                    as_float32(g_loss),
-                    grad,
-                ],
-            )
-        return grad, None, None, None
+        # held in a local until the launch (a Warp view keeps no reference to its tensor)
+        g_loss = as_float32(g_loss)
+        pi, tot = fast_view(packed_info, wp.vec2i), fast_view(totals, wp.vec2)
+        args = [weights, t_starts, t_ends, pi, tot, g_loss, grad]
+        _launch(ctx.layout, _distortion_bwd, distortion_bwd_block, R, weights, args)
+        return grad, None, None, None, None
 
 
 def distortion_loss(
@@ -480,11 +466,16 @@ def distortion_loss(
     t_starts: torch.Tensor,
     t_ends: torch.Tensor,
     packed_info: torch.Tensor,
+    layout: Layout = "auto",
 ) -> torch.Tensor:
     """Per-ray mip-NeRF 360 distortion loss (R,), differentiable w.r.t. `weights` (S,).
 
     Midpoints are in the units of `t_starts`/`t_ends` (world units from the marcher); samples
     must be sorted along each ray and not overlap. Take `.mean()` for the regulariser.
+    `layout`: "ray" (one thread per ray), "block" (32 threads per ray,
+    kernels/distortion_block.py) or "auto" (`DISTORTION_CUDA_AUTO` on CUDA, "ray" on the CPU);
+    the same loss up to float32 rounding.
     """
     _check_packed(weights, t_starts, t_ends, packed_info)
-    return _Distortion.apply(weights, t_starts, t_ends, packed_info)
+    mode = resolve_layout(layout, weights.device, DISTORTION_CUDA_AUTO)
+    return _Distortion.apply(weights, t_starts, t_ends, packed_info, mode)

@@ -853,3 +853,26 @@ def test_new_gpu_runs_compact_where_it_pays_cpu_runs_do_not():
     assert cfg.backend_options["compaction_auto"] is True
     assert "compaction_auto" not in train_preset("fast", "ngp", device="cpu").backend_options
 
+
+def test_ngp_distortion_layout_is_how_the_loss_runs_not_what_it_is(make):
+    """compositing.distortion_layout picks the distortion loss's kernels: "block" gives the
+    "ray" loss to float32 rounding and its gradients within what "ray" differs from itself
+    by (the training render's backward sums by atomics); the choice is in the saved config."""
+    fields = [make("ngp", distortion_layout=k) for k in ("ray", "block", "ray")]
+    for f in fields[1:]:
+        f.load_state_dict(fields[0].state_dict())
+    assert fields[1].config_dict()["options"]["compositing"]["distortion_layout"] == "block"
+    assert make("ngp").options.compositing.distortion_layout == "auto"  # the default
+    o, d = hit_rays(48)
+    losses, grads = [], []
+    for f in fields:
+        loss = f.render(o, d, near=1e-4, background=BG, train=True)["distortion"]
+        grads.append(torch.autograd.grad(loss, list(f.parameters()), allow_unused=True))
+        losses.append(loss.detach())
+    assert losses[0] > 0
+    torch.testing.assert_close(losses[1], losses[0], rtol=1e-4, atol=0)
+    for a, b, c in zip(*grads, strict=True):
+        if a is not None:
+            noise = (c - a).abs().max().item()
+            assert (b - a).abs().max().item() <= 3 * noise + 1e-4 * a.abs().max().item() + 1e-9
+    assert any(g is not None and g.abs().sum() > 0 for g in grads[1])

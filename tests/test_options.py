@@ -51,7 +51,12 @@ def test_nested_and_flat_options_are_the_same():
         ("ngp", {"dt_min": 0}, "'marcher.dt_min' must be in (0, 10]"),
         ("ngp", {"alpha_threshold": 2}, "'marcher.alpha_threshold' must be in [0, 1], got 2"),
         ("ngp", {"max_resolution": 8, "base_resolution": 16}, "base_resolution <= max_resolution"),
-        ("ngp", {"win_max": 10}, "unknown key 'win_max' (valid: encoding, marcher, network, "),
+        (
+            "ngp",
+            {"win_max": 10},
+            "unknown key 'win_max' (valid: compositing, encoding, marcher, network, ",
+        ),
+        ("ngp", {"distortion_layout": "warp"}, "'compositing.distortion_layout' must be one of"),
         ("ngp", {"marcher": {"hidden": 3}}, "unknown key 'marcher.hidden' (valid: cone_angle,"),
         ("ngp", {"marcher": 3}, "'marcher' must be an object"),
         ("ngp", {"hidden": 8, "network": {"hidden": 9}}, "'hidden' is given twice"),

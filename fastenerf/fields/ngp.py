@@ -308,8 +308,9 @@ class NGPField(Field):
             overflow = samples.overflow
             res["valid"] = ~(overflow if samples is marched else overflow | marched.overflow)
         if train:
+            layout = self.options.compositing.distortion_layout
             res["distortion"] = distortion_loss(
-                out["weights"], t_starts, t_ends, packed_info
+                out["weights"], t_starts, t_ends, packed_info, layout=layout
             ).mean()
         return res
 
