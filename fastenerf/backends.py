@@ -44,6 +44,11 @@ class NetworkOptions:
     activation kernel's pass over every sample (measured on every built-in scene and the
     mesh scene: benchmarks/RESULTS.md, the thirty-ninth session). False: a GEMM, then a ReLU
     kernel, each module called as nn.Sequential would."""
+    bf16_features: bool = False
+    """Where the MLPs run under bf16 autocast (the GPU), the hash grid writes its features and
+    reads their gradient in bf16 (kernels/hashgrid.py): the values the density MLP would cast
+    them to anyway (both round to nearest even), without the two casts' passes over every
+    sample's features. Off where coarse-to-fine weights the features' values."""
 
 
 @dataclass

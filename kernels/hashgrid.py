@@ -44,7 +44,15 @@ import warp as wp
 
 from .common import as_float32, device_of, fast_view, init, launch
 from .gridconfig import HashGridConfig
-from .hashgrid_cells import cell_of, corner_weight, grid_index, grouped, pair_rows
+from .hashgrid_cells import (
+    cell_of,
+    corner_weight,
+    features_dtype,
+    grad_loader,
+    grid_index,
+    grouped,
+    pair_rows,
+)
 from .hashgrid_runs import run_backward, run_threads
 from .rows import tracker_of
 from .vector_memory import gather_pair, scatter_func, scatter_pair
@@ -79,6 +87,7 @@ def _kernels(
     vector_red: bool = True,
     pairs: bool = True,
     group: int = 4,
+    bf16: bool = False,
 ):
     """Forward / backward(table) / backward(x) kernels specialised to F and a launch layout.
 
@@ -89,9 +98,12 @@ def _kernels(
     group (backward, with level_outer): levels are taken `group` at a time with the level the
       fastest index, so a row-major (N, L*F) gradient is read in whole 32-byte sectors while the
       table slices in flight (group x 4 MB at T = 2^19) still fit in L2.
+    bf16: the features are written, and their gradient read, as bfloat16 (`features_dtype`);
+      the arithmetic and the table stay float32.
     The gradient w.r.t. the features is read as an (N, L*F) array with whatever strides it has.
     """
     vec = wp.types.vector(length=F, dtype=wp.float32)
+    ft = features_dtype(bf16)
     scatter = scatter_func(F)
     pairs = pairs and F == 2
 
@@ -110,19 +122,14 @@ def _kernels(
         return split(tid, n, n_levels)
 
     @wp.func
-    def store(out: wp.array2d(dtype=float), i: int, lv: int, v: vec):
+    def store(out: wp.array2d(dtype=ft), i: int, lv: int, v: vec):
         for k in range(F):
             if wp.static(feature_major):
-                out[lv * F + k, i] = v[k]
+                out[lv * F + k, i] = ft(v[k])
             else:
-                out[i, lv * F + k] = v[k]
+                out[i, lv * F + k] = ft(v[k])
 
-    @wp.func
-    def load(g: wp.array2d(dtype=float), i: int, lv: int) -> vec:
-        v = vec()
-        for k in range(F):
-            v[k] = g[i, lv * F + k]
-        return v
+    load = grad_loader(F, bf16)
 
     @wp.func
     def weights_yz(f: wp.vec3, dy: int, dz: int) -> float:
@@ -135,7 +142,7 @@ def _kernels(
         levels: wp.array(dtype=wp.vec4i),
         n: int,
         n_levels: int,
-        out: wp.array2d(dtype=float),
+        out: wp.array2d(dtype=ft),
     ):
         lv, i = split(wp.tid(), n, n_levels)
         level = levels[lv]
@@ -154,7 +161,7 @@ def _kernels(
     @wp.kernel(enable_backward=False, module="unique")
     def backward_table(
         x: wp.array(dtype=wp.vec3),
-        grad: wp.array2d(dtype=float),
+        grad: wp.array2d(dtype=ft),
         levels: wp.array(dtype=wp.vec4i),
         n: int,
         n_levels: int,
@@ -187,7 +194,7 @@ def _kernels(
     @wp.kernel(enable_backward=False, module="unique")
     def backward_x(
         x: wp.array(dtype=wp.vec3),
-        grad: wp.array2d(dtype=float),
+        grad: wp.array2d(dtype=ft),
         table: wp.array(dtype=vec),
         levels: wp.array(dtype=wp.vec4i),
         n_levels: int,
@@ -239,16 +246,19 @@ def _kernels(
 
 
 @functools.cache
-def _tracked_backward(F: int):
+def _tracked_backward(F: int, bf16: bool = False):
     """backward(table) that also marks every row it writes in a `RowTracker`'s mask: the
     row-sparse optimiser's input (kernels/rows.py). One thread per (level, point), level the
-    slow index; plain atomics (the CPU's scatter; correct on CUDA too)."""
+    slow index; plain atomics (the CPU's scatter; correct on CUDA too). bf16: the gradient
+    arrives as bfloat16."""
     vec = wp.types.vector(length=F, dtype=wp.float32)
+    ft = features_dtype(bf16)
+    load = grad_loader(F, bf16)
 
     @wp.kernel(enable_backward=False, module="unique")
     def backward_table_tracked(
         x: wp.array(dtype=wp.vec3),
-        grad: wp.array2d(dtype=float),
+        grad: wp.array2d(dtype=ft),
         levels: wp.array(dtype=wp.vec4i),
         n: int,
         grad_table: wp.array(dtype=vec),
@@ -258,9 +268,7 @@ def _tracked_backward(F: int):
         lv = tid // n
         i = tid - lv * n
         level = levels[lv]
-        g = vec()
-        for k in range(F):
-            g[k] = grad[i, lv * F + k]
+        g = load(grad, i, lv)
         if wp.length_sq(g) == 0.0:  # as backward_table: nothing to scatter, no row touched
             return
         c, f = cell_of(x[i], level[0])
@@ -304,9 +312,9 @@ class _Variant:
     group: int = 4
     run: int = 0  # points per thread in the table's backward (`run_backward`); 0: the cfg's
 
-    def kernels(self, F: int):
+    def kernels(self, F: int, bf16: bool = False):
         return _kernels(
-            F, self.level_outer, self.feature_major, self.vector_red, self.pairs, self.group
+            F, self.level_outer, self.feature_major, self.vector_red, self.pairs, self.group, bf16
         )
 
     def backward_threads(self, n: int, n_levels: int) -> int:
@@ -334,12 +342,18 @@ def grid_indices(ijk: torch.Tensor, level: int, cfg: HashGridConfig) -> torch.Te
     return out
 
 
-def _alloc_out(n: int, cfg: HashGridConfig, variant: _Variant, device) -> torch.Tensor:
+FEATURE_DTYPES = (torch.float32, torch.bfloat16)
+"""What the features can be written in (`hash_grid_encode`'s out_dtype)."""
+
+
+def _alloc_out(
+    n: int, cfg: HashGridConfig, variant: _Variant, device, dtype=torch.float32
+) -> torch.Tensor:
     """Output storage in the variant's layout: (L*F, N) feature-major or (N, L*F)."""
     rows, cols = cfg.n_output_dims, n
     if not variant.feature_major:
         rows, cols = cols, rows
-    return torch.empty(rows, cols, dtype=torch.float32, device=device)
+    return torch.empty(rows, cols, dtype=dtype, device=device)
 
 
 def _launch_forward(x, table, cfg: HashGridConfig, variant: _Variant, storage: torch.Tensor):
@@ -348,7 +362,7 @@ def _launch_forward(x, table, cfg: HashGridConfig, variant: _Variant, storage: t
     dev = device_of(x)
     if variant.pairs and table.data_ptr() % 16:
         variant = dataclasses.replace(variant, pairs=False)  # 16-byte loads need alignment
-    fwd, _, _ = variant.kernels(F)
+    fwd, _, _ = variant.kernels(F, storage.dtype == torch.bfloat16)
     if n:
         launch(
             fwd,
@@ -366,11 +380,11 @@ def _launch_forward(x, table, cfg: HashGridConfig, variant: _Variant, storage: t
     return storage.t() if variant.feature_major else storage
 
 
-def _launch_tracked(x, g_wp, cfg: HashGridConfig, grad_table, tracker) -> None:
+def _launch_tracked(x, g_wp, cfg: HashGridConfig, grad_table, tracker, bf16: bool) -> None:
     """Scatter the gradient into grad_table and mark the rows written in `tracker`."""
     n, F = x.shape[0], cfg.n_features
     launch(
-        _tracked_backward(F),
+        _tracked_backward(F, bf16),
         n * cfg.n_levels,
         x,
         [
@@ -387,10 +401,9 @@ def _launch_tracked(x, g_wp, cfg: HashGridConfig, grad_table, tracker) -> None:
 
 class _HashGridEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, table, cfg, variant, x_grad_weights, x_grad_mask):
-        out = _launch_forward(
-            x, table, cfg, variant, _alloc_out(x.shape[0], cfg, variant, x.device)
-        )
+    def forward(ctx, x, table, cfg, variant, x_grad_weights, x_grad_mask, out_dtype):
+        storage = _alloc_out(x.shape[0], cfg, variant, x.device, out_dtype)
+        out = _launch_forward(x, table, cfg, variant, storage)
         ctx.save_for_backward(x, table)
         ctx.cfg, ctx.variant, ctx.x_grad_weights = cfg, variant, x_grad_weights
         ctx.x_grad_mask = x_grad_mask
@@ -404,7 +417,8 @@ class _HashGridEncode(torch.autograd.Function):
         cfg, variant = ctx.cfg, ctx.variant
         n, F, L = x.shape[0], cfg.n_features, cfg.n_levels
         dev = device_of(x)
-        _, bwd_table, bwd_x = variant.kernels(F)
+        bf16 = grad_out.dtype == torch.bfloat16  # autograd hands it in the output's dtype
+        _, bwd_table, bwd_x = variant.kernels(F, bf16)
         # Read in place with its strides (a transposing copy would cost more than the reads);
         # zero strides (an expanded gradient) are materialised.
         g = grad_out.contiguous() if 0 in grad_out.stride() else grad_out
@@ -415,11 +429,11 @@ class _HashGridEncode(torch.autograd.Function):
             grad_table = torch.zeros_like(table)
             run = variant.run or cfg.backward_run
             if n and ctx.tracker is not None:
-                _launch_tracked(x, g_wp, cfg, grad_table, ctx.tracker)
+                _launch_tracked(x, g_wp, cfg, grad_table, ctx.tracker, bf16)
             elif n:
                 by_runs = run > 1 and variant.level_outer
                 launch(
-                    run_backward(F, run) if by_runs else bwd_table,
+                    run_backward(F, run, bf16) if by_runs else bwd_table,
                     run_threads(n, L, run) if by_runs else variant.backward_threads(n, L),
                     x,
                     [
@@ -454,7 +468,7 @@ class _HashGridEncode(torch.autograd.Function):
                         fast_view(grad_x, wp.vec3),
                     ],
                 )
-        return grad_x, grad_table, None, None, None, None
+        return grad_x, grad_table, None, None, None, None, None
 
 
 def hash_grid_encode(
@@ -464,6 +478,7 @@ def hash_grid_encode(
     _variant: _Variant = DEFAULT_VARIANT,
     x_grad_weights: torch.Tensor | None = None,
     x_grad_mask: torch.Tensor | None = None,
+    out_dtype: torch.dtype = torch.float32,
 ) -> torch.Tensor:
     """Encode points x: (N, 3) float32 in [0, 1]^3 with table (n_params, F) -> (N, L*F) float32.
 
@@ -476,7 +491,15 @@ def hash_grid_encode(
     x_grad_mask: optional (N,) bool, the points whose gradient w.r.t. x is wanted; the others
     get 0 without their corners being read (a ray whose pose gradient is dropped anyway,
     `PoseCalibration.grad_rays`). The value and the table's gradient are unchanged.
+    out_dtype: float32, or bfloat16 for an MLP that runs in it: the features rounded to
+    nearest even (as `.to(torch.bfloat16)` of the float32 ones) and their gradient read as
+    bfloat16, without a cast's pass over the (N, L*F) features either way; the arithmetic
+    and the table stay float32.
     """
+    if out_dtype not in FEATURE_DTYPES:
+        raise ValueError(
+            f"hash_grid_encode: out_dtype must be one of {FEATURE_DTYPES}, got {out_dtype}"
+        )
     if x.ndim != 2 or x.shape[1] != 3 or x.dtype != torch.float32:
         raise ValueError(
             f"hash_grid_encode: x must be (N, 3) float32, got {tuple(x.shape)} {x.dtype}"
@@ -506,4 +529,4 @@ def hash_grid_encode(
         )
     mask = None if x_grad_mask is None else x_grad_mask.contiguous()
     w = None if x_grad_weights is None else as_float32(x_grad_weights, x.device)
-    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, w, mask)
+    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, w, mask, out_dtype)

@@ -1,6 +1,8 @@
 """Where a point lands in the hash grid: its cell, trilinear weights and table rows (the
 layout of `hashgrid.py`'s module docstring), as Warp functions shared by its kernels."""
 
+import functools
+
 import warp as wp
 
 from .common import init
@@ -71,3 +73,25 @@ def grouped(tid: int, n: int, group: int):
     r = tid - gi * gsize
     i = r // group
     return gi * group + (r - i * group), i
+
+
+def features_dtype(bf16: bool):
+    """The Warp scalar type the encoding's features and their gradient are stored in."""
+    return wp.bfloat16 if bf16 else wp.float32
+
+
+@functools.cache
+def grad_loader(F: int, bf16: bool):
+    """load(grad, i, lv) -> the F-vector of level lv's gradient at point i, as float32, from
+    an (N, L*F) array of `features_dtype(bf16)` with any strides."""
+    vec = wp.types.vector(length=F, dtype=wp.float32)
+    ft = features_dtype(bf16)
+
+    @wp.func
+    def load(g: wp.array2d(dtype=ft), i: int, lv: int) -> vec:
+        v = vec()
+        for k in range(F):
+            v[k] = wp.float32(g[i, lv * F + k])
+        return v
+
+    return load

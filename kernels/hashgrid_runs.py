@@ -11,7 +11,7 @@ import functools
 import warp as wp
 
 from .common import init
-from .hashgrid_cells import cell_of, corner_weight, grouped, pair_rows
+from .hashgrid_cells import cell_of, corner_weight, features_dtype, grad_loader, grouped, pair_rows
 from .vector_memory import scatter_func, scatter_pair
 
 init()
@@ -27,7 +27,7 @@ def run_threads(n: int, n_levels: int, run: int) -> int:
 
 
 @functools.cache
-def run_backward(F: int, run: int):
+def run_backward(F: int, run: int, bf16: bool = False):
     """backward(table) over runs of `run` consecutive points per (level, thread).
 
     A ray's samples are consecutive and, at the coarse levels, several fall in one cell: the
@@ -35,9 +35,11 @@ def run_backward(F: int, run: int):
     the cell changes (or the run ends), instead of one per sample. The thread layout of the
     thread-per-point backward (`hashgrid._kernels`: levels 4 at a time, the level fastest),
     over ceil(N / run) items. Arguments as that kernel's: x (N, 3) in [0, 1]^3, grad (N, L*F)
-    with any strides, grad_table (n_params,) F-vectors, added into.
+    with any strides (bfloat16 with `bf16`), grad_table (n_params,) F-vectors, added into.
     """
     vec = wp.types.vector(length=F, dtype=wp.float32)
+    ft = features_dtype(bf16)
+    load = grad_loader(F, bf16)
     corners = wp.types.matrix(shape=(8, F), dtype=wp.float32)
     scatter = scatter_func(F)
     pairs = F == 2
@@ -57,7 +59,7 @@ def run_backward(F: int, run: int):
     @wp.kernel(enable_backward=False, module="unique")
     def backward_table_runs(
         x: wp.array(dtype=wp.vec3),
-        grad: wp.array2d(dtype=float),
+        grad: wp.array2d(dtype=ft),
         levels: wp.array(dtype=wp.vec4i),
         n: int,
         n_levels: int,
@@ -72,9 +74,7 @@ def run_backward(F: int, run: int):
         cur = wp.vec3i(-1, -1, -1)
         begin = item * run
         for i in range(begin, wp.min(begin + run, n)):
-            g = vec()
-            for k in range(F):
-                g[k] = grad[i, lv * F + k]
+            g = load(grad, i, lv)
             # no gradient, nothing to add: a fixed-capacity march's padding, samples past a
             # ray's end (as the default backward)
             if wp.length_sq(g) == 0.0:

@@ -37,7 +37,9 @@ def training_kernels() -> list:
     for info in pkgutil.iter_modules(kernels_pkg.__path__):
         mod = importlib.import_module(f"fastenerf.kernels.{info.name}")
         out += [v for v in vars(mod).values() if isinstance(v, wp.Kernel)]
-    out += [*hashgrid._kernels(2), hashgrid._tracked_backward(2), hashgrid_runs.run_backward(2, 4)]
+    for bf16 in (False, True):  # the features and their gradient in float32 or bfloat16
+        out += [*hashgrid._kernels(2, bf16=bf16), hashgrid._tracked_backward(2, bf16)]
+        out += [hashgrid_runs.run_backward(2, 4, bf16)]
     for flags in itertools.product((False, True), repeat=4):
         out += [composite._composite_bwd_kernel(*flags)]
         out += [composite_block.composite_bwd_block_kernel(*flags)]

@@ -876,3 +876,30 @@ def test_ngp_distortion_layout_is_how_the_loss_runs_not_what_it_is(make):
             noise = (c - a).abs().max().item()
             assert (b - a).abs().max().item() <= 3 * noise + 1e-4 * a.abs().max().item() + 1e-9
     assert any(g is not None and g.abs().sum() > 0 for g in grads[1])
+
+
+def test_ngp_bf16_features_are_what_the_mlp_casts_the_float32_ones_to(make):
+    """bf16_features under bf16 autocast: the hash grid writes the features the density MLP
+    would have cast them to, and reads their bf16 gradient as the float32 path reads it cast
+    back, so a render and its gradients are the float32-feature field's bit for bit;
+    outside autocast the option changes nothing (float32 features)."""
+    plain, fast = make("ngp", bf16_features=False), make("ngp", bf16_features=True)
+    fast.load_state_dict(plain.state_dict())
+    o, d = hit_rays(48)
+    x = torch.rand(64, 3) - 0.5
+    assert fast._features_dtype(x) == torch.float32  # no autocast
+    outs, grads = [], []
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert fast._features_dtype(x) == torch.bfloat16
+        assert plain._features_dtype(x) == torch.float32
+        for f in (plain, fast):  # an evaluation render: no jitter, the same samples
+            out = f.render(o, d, near=1e-4, background=BG, train=False)
+            loss = out["rgb"].square().sum() + out["depth"].sum()
+            grads.append(torch.autograd.grad(loss, list(f.parameters()), allow_unused=True))
+            outs.append(out)
+    for k in ("rgb", "depth", "opacity"):
+        assert torch.equal(outs[1][k], outs[0][k]), k
+    for a, b in zip(*grads, strict=True):
+        assert (a is None and b is None) or torch.equal(a, b)
+    names = [n for n, _ in fast.named_parameters()]
+    assert dict(zip(names, grads[1], strict=True))["table"].abs().sum() > 0

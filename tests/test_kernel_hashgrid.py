@@ -379,3 +379,53 @@ def test_x_grad_mask_zeroes_only_the_masked_points_position_gradient():
     for bad in (keep[:-1], keep.to(torch.uint8)):
         with pytest.raises(ValueError, match="x_grad_mask"):
             hash_grid_encode(xt, table, cfg, x_grad_mask=bad)
+
+
+@pytest.mark.parametrize(
+    "variant,track",
+    [
+        (_Variant(), False),
+        (_Variant(run=1), False),
+        (_Variant(feature_major=False), False),
+        (_Variant(), True),
+    ],
+    ids=["runs", "thread_per_point", "point_major", "row_tracker"],
+)
+def test_bfloat16_features_are_the_float32_ones_rounded(variant, track):
+    """out_dtype=bfloat16 writes the float32 features rounded to nearest even, bit for bit
+    what `.to(torch.bfloat16)` makes of them, and reads a bfloat16 gradient as the float32
+    path reads the same values: the table's and x's gradients are those of the float32 path
+    given that gradient, in every backward (runs, a thread per point, the row tracker's)."""
+    from fastenerf.kernels.rows import track_rows
+
+    gen = torch.Generator().manual_seed(11)
+    x = ray_samples(23, 37, gen)
+    table = (torch.rand(SMALL.n_params, SMALL.n_features, generator=gen) * 2 - 1).float()
+    g = torch.randn(x.shape[0], SMALL.n_output_dims, generator=gen).to(torch.bfloat16)
+    g[::7] = 0  # points without gradient scatter nothing, in bfloat16 too
+    grads = []
+    for dt in (torch.float32, torch.bfloat16):
+        xt, tt = x.clone().requires_grad_(), table.clone().requires_grad_()
+        if track:
+            track_rows(tt)
+        out = hash_grid_encode(xt, tt, SMALL, variant, out_dtype=dt)
+        assert out.dtype == dt and out.shape == (x.shape[0], SMALL.n_output_dims)
+        grads.append((out.detach(), *torch.autograd.grad((out * g.to(dt)).sum(), (xt, tt))))
+    (f32, gx32, gt32), (b16, gx16, gt16) = grads
+    assert torch.equal(b16, f32.to(torch.bfloat16))
+    assert torch.equal(gt16, gt32) and torch.equal(gx16, gx32)
+    assert gt16.abs().sum() > 0 and gx16.abs().sum() > 0
+
+
+def test_bfloat16_features_write_every_element():
+    gen = torch.Generator().manual_seed(3)
+    x = random_points(300, SMALL, gen)
+    table = init_table(SMALL, generator=gen)
+    storage = _alloc_out(x.shape[0], SMALL, _Variant(), "cpu", torch.bfloat16).fill_(float("nan"))
+    out = _launch_forward(x, table, SMALL, _Variant(), storage)
+    assert out.dtype == torch.bfloat16 and torch.isfinite(storage).all()
+
+
+def test_rejects_a_feature_dtype_it_cannot_write():
+    with pytest.raises(ValueError, match="out_dtype"):
+        hash_grid_encode(torch.rand(4, 3), init_table(SMALL), SMALL, out_dtype=torch.float16)

@@ -225,22 +225,37 @@ class NGPField(Field):
         if self.level_weights is not None:
             # expand, not repeat_interleave: nothing a captured step could wait on
             w = self.level_weights[:, None].expand(-1, cfg.n_features).reshape(-1)
-        if w is not None and self.level_weights_mode == "gradient":
+        on_values = w is not None and self.level_weights_mode != "gradient"
+        dt = torch.float32 if on_values else self._features_dtype(xn)
+        if w is not None and not on_values:
             # coarse-to-fine on the pose gradient only (fields/level_weights.py), in the
             # encoding's backward: one forward, the x-gradient weighted
             feats = hash_grid_encode(
-                xn, table, cfg, x_grad_weights=w.float(), x_grad_mask=x_grad_mask
+                xn, table, cfg, x_grad_weights=w.float(), x_grad_mask=x_grad_mask, out_dtype=dt
             )
         else:
-            feats = hash_grid_encode(xn, table, cfg, x_grad_mask=x_grad_mask)
+            feats = hash_grid_encode(xn, table, cfg, x_grad_mask=x_grad_mask, out_dtype=dt)
             feats = feats if w is None else feats * w
-        h = self.density_net(_cast(feats, self.density_net[0].weight.dtype))
+        if feats.dtype == torch.float32:
+            feats = _cast(feats, self.density_net[0].weight.dtype)
+        h = self.density_net(feats)
         net = self.options.network
         logit = _cast(h[:, 0], torch.float32) + net.density_bias
         sigma = trunc_exp(logit, net.max_log_density)
         if self.cylinder is not None:
             sigma = clip_density(sigma, x, self.cylinder)
         return sigma, h
+
+    def _features_dtype(self, x: torch.Tensor) -> torch.dtype:
+        """What the hash grid writes its features in: bf16 with `bf16_features` while autocast
+        runs the MLPs in bf16 on x's device, else float32."""
+        kind = x.device.type
+        on = self.options.network.bf16_features and torch.is_autocast_enabled(kind)
+        return (
+            torch.bfloat16
+            if on and torch.get_autocast_dtype(kind) == torch.bfloat16
+            else torch.float32
+        )
 
     def _sigma(self, x: torch.Tensor) -> torch.Tensor:
         """σ (N,) float32 at world points x (N, 3), unchecked: for the sampler's own points
