@@ -6,9 +6,10 @@
 #    before the lease (the machine cannot draw one: no trimesh, no EGL); the two tests that
 #    build Warp's CPU kernels are left out (the staged Warp has no CPU compiler);
 # 1. the distortion loss's two layouts timed side by side (benchmarks.kernels_render);
-# 2. once every scene is on the machine, `profile_step --trace` of the default and of
-#    distortion_layout=block side by side on every scene, each trace read by trace_gaps;
-# 3. runs.txt: 60 s runs, the default and distortion_layout=block, scene by scene;
+# 2. once every scene is on the machine, `profile_step --trace` of the default, of
+#    distortion_layout=block and of bf16_features side by side on every scene, each trace
+#    read by trace_gaps;
+# 3. runs.txt: 60 s runs, the default and both options together, scene by scene;
 # 4. runs_frz.txt: #20 at 2° with refine_freeze at the default on plant, the mesh scene and
 #    lattice, as far as the budget goes.
 # Everything lands in RES/s52 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
@@ -34,8 +35,8 @@ gaps() {  # NAME VARIANT: RES/NAME/VARIANT's trace read into RES/gaps_NAME_VARIA
 ready shiny  # the last scene staged: the profiles run on a quiet machine
 for s in toyset shiny blocks plant lattice; do
     profile "prof_$s" "$s" --trace --variant 'base={}' \
-        --variant 'db={"backend_options": {"distortion_layout": "block"}}'
-    gaps "prof_$s" base
-    gaps "prof_$s" db
+        --variant 'db={"backend_options": {"distortion_layout": "block"}}' \
+        --variant 'bf={"backend_options": {"bf16_features": true}}'
+    for v in base db bf; do gaps "prof_$s" $v; done
 done
 run_lists runs.txt runs_frz.txt
