@@ -38,12 +38,12 @@ class NetworkOptions:
     max_log_density: float = field(default=15.0, metadata={"min": 1.0, "max": 80.0})
     """The truncated exp's clamp: σ ≤ e^max_log_density (15: ≈ 3.3e6, DESIGN §5), computed
     in float32 whatever the MLP's autocast dtype."""
-    fused_relu: bool = True
+    fused_relu: bool = False
     """Each hidden layer's ReLU in its GEMM's epilogue (cuBLASLt through
     `torch._addmm_activation`; fields/mlp.py): the same function without the separate
-    activation kernel's pass over every sample (measured on every built-in scene and the
-    mesh scene: benchmarks/RESULTS.md, the thirty-ninth session). False: a GEMM, then a ReLU
-    kernel, each module called as nn.Sequential would."""
+    activation kernel's pass over every sample. New CUDA runs set it (`GPU_NETWORK`); on the
+    CPU torch's `_addmm_activation` is an addmm and then a clamp, nothing saved. False: a
+    GEMM, then a ReLU kernel, each module called as nn.Sequential would."""
     bf16_features: bool = False
     """Where the MLPs run under bf16 autocast (the GPU), the hash grid writes its features and
     reads their gradient in bf16 (kernels/hashgrid.py): the values the density MLP would cast
@@ -312,12 +312,16 @@ def set_option(name: str, d: dict | None, key: str, value: Any) -> dict:
 # benchmarks/RESULTS.md); the CPU preset's runs are not measured with it and keep it off.
 COMPACTION_KEYS = ("early_stop_eps", "alpha_threshold", "compaction_auto")
 GPU_COMPACTION = {"early_stop_eps": 1e-4, "compaction_auto": True}
+# The ReLU in the GEMM's epilogue on CUDA (measured on every built-in scene and the mesh
+# scene, benchmarks/RESULTS.md, the thirty-ninth session); the CPU has no such epilogue.
+GPU_NETWORK = {"fused_relu": True}
 
 
-def ngp_marching_defaults(opts: dict | None, cone: float, device: str) -> dict:
-    """ngp's options with the marching defaults a new run writes into its config (so a resume
-    marches alike): `cone` unless cone_angle is set; on CUDA (`device` cuda[:N], or auto with
-    a GPU) compaction_auto unless an option of compaction is set."""
+def ngp_run_defaults(opts: dict | None, cone: float, device: str) -> dict:
+    """ngp's options with the defaults a new run writes into its config (so a resume runs
+    alike): `cone` unless cone_angle is set; on CUDA (`device` cuda[:N], or auto with a GPU)
+    compaction_auto unless an option of compaction is set, and `GPU_NETWORK`'s options
+    unless set."""
     out = dict(opts or {})
     if get_option("ngp", out, "cone_angle") is None:
         out = set_option("ngp", out, "cone_angle", cone)
@@ -328,5 +332,8 @@ def ngp_marching_defaults(opts: dict | None, cone: float, device: str) -> dict:
         cuda = torch.cuda.is_available()
     if cuda and all(get_option("ngp", out, k) is None for k in COMPACTION_KEYS):
         for k, v in GPU_COMPACTION.items():
+            out = set_option("ngp", out, k, v)
+    for k, v in GPU_NETWORK.items() if cuda else ():
+        if get_option("ngp", out, k) is None:
             out = set_option("ngp", out, k, v)
     return out

@@ -461,8 +461,8 @@ def train_preset(name: str, backend: str = "ngp", **overrides: Any) -> TrainConf
         cfg.lr_final = cfg.lr * ratio
     if overrides.get("minutes") is not None and overrides.get("steps") is None:
         cfg.steps = None  # a time budget replaces the preset's step count
-    if backend == "ngp":  # written into the run's config: a resume marches alike
+    if backend == "ngp":  # written into the run's config: a resume runs alike
         cone = ngp_cone_for_budget(cfg.minutes, cfg.steps)
-        opts = backends.ngp_marching_defaults(cfg.backend_options, cone, str(cfg.device))
+        opts = backends.ngp_run_defaults(cfg.backend_options, cone, str(cfg.device))
         cfg.backend_options = opts
     return cfg.validate()

@@ -277,7 +277,7 @@ def test_ngp_density_finite_for_huge_logits(make):
 
 @pytest.mark.parametrize(
     "backend, options",
-    [(b, {}) for b in BACKENDS] + [("ngp", {"fused_relu": False})],
+    [(b, {}) for b in BACKENDS] + [("ngp", {"fused_relu": True})],
 )
 def test_bf16_autocast_render_is_finite_and_float32(make, backend, options):
     f = make(backend, **options)
@@ -367,7 +367,7 @@ def test_ngp_fused_relu_renders_and_trains_as_the_plain_field(make):
     assert fused.config_dict()["options"]["network"]["fused_relu"] is True
     assert fused.density_net.fused_relu and fused.color_net.fused_relu
     assert not plain.density_net.fused_relu and not plain.color_net.fused_relu
-    assert make("ngp").density_net.fused_relu  # the default
+    assert not make("ngp").density_net.fused_relu  # the default (CUDA runs set it)
     o, d = hit_rays(48)
     outs, grads = [], []
     for f in (plain, fused, again):
@@ -836,22 +836,31 @@ def test_compaction_switch_hysteresis():
 
 
 def test_new_gpu_runs_compact_where_it_pays_cpu_runs_do_not():
-    """The preset writes compaction_auto into a new CUDA run's options (and the cone into
-    every run's), never over an option of compaction the user set, flat or by section."""
-    from fastenerf.backends import ngp_marching_defaults
+    """The preset writes compaction_auto and fused_relu into a new CUDA run's options (and
+    the cone into every run's), never over an option the user set, flat or by section."""
+    from fastenerf.backends import ngp_run_defaults
     from fastenerf.config import train_preset
 
-    gpu = ngp_marching_defaults({}, 0.0, "cuda:1")
-    assert gpu == {"cone_angle": 0.0, "early_stop_eps": 1e-4, "compaction_auto": True}
-    assert ngp_marching_defaults({}, 0.0, "cpu") == {"cone_angle": 0.0}
-    mine = {"marcher": {"early_stop_eps": 0.0}}
-    assert ngp_marching_defaults(mine, 0.5, "cuda") == {
-        "marcher": {"early_stop_eps": 0.0, "cone_angle": 0.5}
+    gpu = ngp_run_defaults({}, 0.0, "cuda:1")
+    assert gpu == {
+        "cone_angle": 0.0,
+        "early_stop_eps": 1e-4,
+        "compaction_auto": True,
+        "fused_relu": True,
     }
-    assert ngp_marching_defaults({"alpha_threshold": 0.01}, 0.0, "cuda")["alpha_threshold"] == 0.01
+    assert ngp_run_defaults({}, 0.0, "cpu") == {"cone_angle": 0.0}
+    mine = {"marcher": {"early_stop_eps": 0.0}, "network": {"fused_relu": False}}
+    assert ngp_run_defaults(mine, 0.5, "cuda") == {
+        "marcher": {"early_stop_eps": 0.0, "cone_angle": 0.5},
+        "network": {"fused_relu": False},
+    }
+    assert ngp_run_defaults({"alpha_threshold": 0.01}, 0.0, "cuda")["alpha_threshold"] == 0.01
+    assert ngp_run_defaults({"fused_relu": False}, 0.0, "cuda")["fused_relu"] is False
     cfg = train_preset("fast", "ngp", device="cuda", minutes=1.0)
     assert cfg.backend_options["compaction_auto"] is True
-    assert "compaction_auto" not in train_preset("fast", "ngp", device="cpu").backend_options
+    assert cfg.backend_options["fused_relu"] is True
+    cpu = train_preset("fast", "ngp", device="cpu").backend_options
+    assert "compaction_auto" not in cpu and "fused_relu" not in cpu
 
 
 def test_ngp_distortion_layout_is_how_the_loss_runs_not_what_it_is(make):
