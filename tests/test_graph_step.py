@@ -105,6 +105,26 @@ def test_fused_relu_steps_are_the_plain_mlps_steps_captured_or_not(scene, tmp_pa
     assert b == pytest.approx(a, rel=2e-2) and c == pytest.approx(b, rel=1e-4)
 
 
+@pytest.mark.skipif(not CUDA, reason="no CUDA: bf16 autocast and the block layouts are the GPU's")
+@pytest.mark.parametrize(
+    "option", [{"bf16_features": True}, {"distortion_layout": "block"}], ids=["bf16", "block"]
+)
+def test_gpu_options_train_as_the_default_captured_or_not(scene, tmp_path, option):
+    """bf16_features (the hash grid's features in bf16) and the distortion loss's block layout
+    change how a step runs, not what it computes: eagerly as the default does (to the GPU
+    atomics' order), and replayed from a graph as eagerly."""
+    steps = 3 * WARMUP + 6
+    opts = {**NGP_TINY, **option}
+    a = losses(make(scene, tmp_path / "base", "device", "cuda", steps=steps), steps)
+    b = losses(
+        make(scene, tmp_path / "o", "device", "cuda", steps=steps, backend_options=opts), steps
+    )
+    graph = make(scene, tmp_path / "g", "graph", "cuda", steps=steps, backend_options=opts)
+    c = losses(graph, steps)
+    assert graph.graph.failure is None and graph.graph.replays >= 3
+    assert b == pytest.approx(a, rel=2e-2) and c == pytest.approx(b, rel=1e-4)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_graph_step_flags_an_overflowing_sample_buffer(scene, tmp_path, device):
     """A buffer too small for the batch drops whole pixels and says so on the graphed step as
