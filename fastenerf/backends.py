@@ -45,10 +45,11 @@ class NetworkOptions:
     CPU torch's `_addmm_activation` is an addmm and then a clamp, nothing saved. False: a
     GEMM, then a ReLU kernel, each module called as nn.Sequential would."""
     bf16_features: bool = False
-    """Where the MLPs run under bf16 autocast (the GPU), the hash grid writes its features and
-    reads their gradient in bf16 (kernels/hashgrid.py): the values the density MLP would cast
-    them to anyway (both round to nearest even), without the two casts' passes over every
-    sample's features. Off where coarse-to-fine weights the features' values."""
+    """Where the MLPs run under bf16 autocast (the GPU), the hash grid and the SH encoding
+    write their features and read their gradient in bf16 (kernels/hashgrid.py, sh.py): the
+    values the MLPs would cast them to anyway (both round to nearest even), without the
+    casts' passes over every sample's features. The hash grid's stay float32 where
+    coarse-to-fine weights the features' values."""
 
 
 @dataclass

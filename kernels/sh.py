@@ -5,6 +5,8 @@ given in [-1, 1]^3 (a unit vector; torch-ngp's convention, not tcnn's [0, 1] inp
 normalisation happens here: the backward is the plain Jacobian of the polynomials.
 """
 
+import functools
+
 import torch
 import warp as wp
 
@@ -15,91 +17,130 @@ init()
 N_COEFFS = 16
 
 
-@wp.kernel(enable_backward=False)
-def _sh_forward(d: wp.array(dtype=wp.vec3), out: wp.array2d(dtype=float)):
-    i = wp.tid()
-    v = d[i]
-    x, y, z = v[0], v[1], v[2]
-    xy, xz, yz = x * y, x * z, y * z
-    x2, y2, z2 = x * x, y * y, z * z
-    out[0, i] = 0.28209479177387814  # 1/(2 sqrt(pi))
-    out[1, i] = -0.48860251190291987 * y  # sqrt(3)/(2 sqrt(pi))
-    out[2, i] = 0.48860251190291987 * z
-    out[3, i] = -0.48860251190291987 * x
-    out[4, i] = 1.0925484305920792 * xy  # sqrt(15)/(2 sqrt(pi))
-    out[5, i] = -1.0925484305920792 * yz
-    out[6, i] = 0.94617469575755997 * z2 - 0.31539156525251999  # sqrt(5)(3z^2-1)/(4 sqrt(pi))
-    out[7, i] = -1.0925484305920792 * xz
-    out[8, i] = 0.54627421529603959 * (x2 - y2)  # sqrt(15)/(4 sqrt(pi))
-    out[9, i] = 0.59004358992664352 * y * (y2 - 3.0 * x2)  # sqrt(70)/(8 sqrt(pi))
-    out[10, i] = 2.8906114426405538 * xy * z  # sqrt(105)/(2 sqrt(pi))
-    out[11, i] = 0.45704579946446572 * y * (1.0 - 5.0 * z2)  # sqrt(42)/(8 sqrt(pi))
-    out[12, i] = 0.3731763325901154 * z * (5.0 * z2 - 3.0)  # sqrt(7)/(4 sqrt(pi))
-    out[13, i] = 0.45704579946446572 * x * (1.0 - 5.0 * z2)
-    out[14, i] = 1.4453057213202769 * z * (x2 - y2)  # sqrt(105)/(4 sqrt(pi))
-    out[15, i] = 0.59004358992664352 * x * (3.0 * y2 - x2)
+@functools.cache
+def _sh_kernels(bf16: bool):
+    """(forward, backward) kernels. float32: the basis written feature-major, (16, N) storage
+    handed on transposed; bf16 (`sh_encode`'s out_dtype): written row-major, (N, 16), each
+    value rounded to nearest even, and the gradient read as bf16. The arithmetic is float32."""
+    ft = wp.bfloat16 if bf16 else wp.float32
 
+    @wp.func
+    def store(out: wp.array2d(dtype=ft), i: int, k: int, v: float):
+        if wp.static(bf16):
+            out[i, k] = ft(v)
+        else:
+            out[k, i] = v
 
-@wp.kernel(enable_backward=False)
-def _sh_backward(
-    d: wp.array(dtype=wp.vec3), g: wp.array2d(dtype=float), grad_d: wp.array(dtype=wp.vec3)
-):
-    i = wp.tid()
-    v = d[i]
-    x, y, z = v[0], v[1], v[2]
-    x2, y2, z2 = x * x, y * y, z * z
-    c1 = 0.48860251190291987
-    c2 = 1.0925484305920792
-    c3 = 0.54627421529603959
-    c4 = 0.59004358992664352
-    c5 = 2.8906114426405538
-    c6 = 0.45704579946446572
-    c7 = 1.4453057213202769
-    g1, g2, g3, g4, g5 = g[i, 1], g[i, 2], g[i, 3], g[i, 4], g[i, 5]
-    g6, g7, g8, g9, g10 = g[i, 6], g[i, 7], g[i, 8], g[i, 9], g[i, 10]
-    g11, g12, g13, g14, g15 = g[i, 11], g[i, 12], g[i, 13], g[i, 14], g[i, 15]
-    dx = (
-        -c1 * g3
-        + c2 * (y * g4 - z * g7)
-        + 2.0 * c3 * x * g8
-        - 6.0 * c4 * x * y * g9
-        + c5 * y * z * g10
-        + c6 * (1.0 - 5.0 * z2) * g13
-        + 2.0 * c7 * x * z * g14
-        + 3.0 * c4 * (y2 - x2) * g15
-    )
-    dy = (
-        -c1 * g1
-        + c2 * (x * g4 - z * g5)
-        - 2.0 * c3 * y * g8
-        + 3.0 * c4 * (y2 - x2) * g9
-        + c5 * x * z * g10
-        + c6 * (1.0 - 5.0 * z2) * g11
-        - 2.0 * c7 * y * z * g14
-        + 6.0 * c4 * x * y * g15
-    )
-    dz = (
-        c1 * g2
-        - c2 * (y * g5 + x * g7)
-        + 2.0 * 0.94617469575755997 * z * g6
-        + c5 * x * y * g10
-        - 10.0 * c6 * z * (y * g11 + x * g13)
-        + 0.3731763325901154 * (15.0 * z2 - 3.0) * g12
-        + c7 * (x2 - y2) * g14
-    )
-    grad_d[i] = wp.vec3(dx, dy, dz)
+    @wp.func
+    def load(g: wp.array2d(dtype=ft), i: int, k: int) -> float:
+        return wp.float32(g[i, k])
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def sh_forward(d: wp.array(dtype=wp.vec3), out: wp.array2d(dtype=ft)):
+        i = wp.tid()
+        v = d[i]
+        x, y, z = v[0], v[1], v[2]
+        xy, xz, yz = x * y, x * z, y * z
+        x2, y2, z2 = x * x, y * y, z * z
+        store(out, i, 0, 0.28209479177387814)  # 1/(2 sqrt(pi))
+        store(out, i, 1, -0.48860251190291987 * y)  # sqrt(3)/(2 sqrt(pi))
+        store(out, i, 2, 0.48860251190291987 * z)
+        store(out, i, 3, -0.48860251190291987 * x)
+        store(out, i, 4, 1.0925484305920792 * xy)  # sqrt(15)/(2 sqrt(pi))
+        store(out, i, 5, -1.0925484305920792 * yz)
+        # sqrt(5)(3z^2-1)/(4 sqrt(pi))
+        store(out, i, 6, 0.94617469575755997 * z2 - 0.31539156525251999)
+        store(out, i, 7, -1.0925484305920792 * xz)
+        store(out, i, 8, 0.54627421529603959 * (x2 - y2))  # sqrt(15)/(4 sqrt(pi))
+        store(out, i, 9, 0.59004358992664352 * y * (y2 - 3.0 * x2))  # sqrt(70)/(8 sqrt(pi))
+        store(out, i, 10, 2.8906114426405538 * xy * z)  # sqrt(105)/(2 sqrt(pi))
+        store(out, i, 11, 0.45704579946446572 * y * (1.0 - 5.0 * z2))  # sqrt(42)/(8 sqrt(pi))
+        store(out, i, 12, 0.3731763325901154 * z * (5.0 * z2 - 3.0))  # sqrt(7)/(4 sqrt(pi))
+        store(out, i, 13, 0.45704579946446572 * x * (1.0 - 5.0 * z2))
+        store(out, i, 14, 1.4453057213202769 * z * (x2 - y2))  # sqrt(105)/(4 sqrt(pi))
+        store(out, i, 15, 0.59004358992664352 * x * (3.0 * y2 - x2))
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def sh_backward(
+        d: wp.array(dtype=wp.vec3), g: wp.array2d(dtype=ft), grad_d: wp.array(dtype=wp.vec3)
+    ):
+        i = wp.tid()
+        v = d[i]
+        x, y, z = v[0], v[1], v[2]
+        x2, y2, z2 = x * x, y * y, z * z
+        c1 = 0.48860251190291987
+        c2 = 1.0925484305920792
+        c3 = 0.54627421529603959
+        c4 = 0.59004358992664352
+        c5 = 2.8906114426405538
+        c6 = 0.45704579946446572
+        c7 = 1.4453057213202769
+        g1, g2, g3, g4, g5 = (
+            load(g, i, 1),
+            load(g, i, 2),
+            load(g, i, 3),
+            load(g, i, 4),
+            load(g, i, 5),
+        )
+        g6, g7, g8, g9, g10 = (
+            load(g, i, 6),
+            load(g, i, 7),
+            load(g, i, 8),
+            load(g, i, 9),
+            load(g, i, 10),
+        )
+        g11, g12, g13, g14, g15 = (
+            load(g, i, 11),
+            load(g, i, 12),
+            load(g, i, 13),
+            load(g, i, 14),
+            load(g, i, 15),
+        )
+        dx = (
+            -c1 * g3
+            + c2 * (y * g4 - z * g7)
+            + 2.0 * c3 * x * g8
+            - 6.0 * c4 * x * y * g9
+            + c5 * y * z * g10
+            + c6 * (1.0 - 5.0 * z2) * g13
+            + 2.0 * c7 * x * z * g14
+            + 3.0 * c4 * (y2 - x2) * g15
+        )
+        dy = (
+            -c1 * g1
+            + c2 * (x * g4 - z * g5)
+            - 2.0 * c3 * y * g8
+            + 3.0 * c4 * (y2 - x2) * g9
+            + c5 * x * z * g10
+            + c6 * (1.0 - 5.0 * z2) * g11
+            - 2.0 * c7 * y * z * g14
+            + 6.0 * c4 * x * y * g15
+        )
+        dz = (
+            c1 * g2
+            - c2 * (y * g5 + x * g7)
+            + 2.0 * 0.94617469575755997 * z * g6
+            + c5 * x * y * g10
+            - 10.0 * c6 * z * (y * g11 + x * g13)
+            + 0.3731763325901154 * (15.0 * z2 - 3.0) * g12
+            + c7 * (x2 - y2) * g14
+        )
+        grad_d[i] = wp.vec3(dx, dy, dz)
+
+    return sh_forward, sh_backward
 
 
 class _SHEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, d):
-        # Coefficient-major storage: adjacent threads write adjacent words (a (N, 16) row per
-        # thread would scatter 4-byte stores 64 bytes apart); returned as its (N, 16) view.
-        storage = torch.empty(N_COEFFS, d.shape[0], dtype=torch.float32, device=d.device)
+    def forward(ctx, d, out_dtype):
+        bf16 = out_dtype == torch.bfloat16
+        shape = (d.shape[0], N_COEFFS) if bf16 else (N_COEFFS, d.shape[0])
+        storage = torch.empty(shape, dtype=out_dtype, device=d.device)
         if d.shape[0]:
-            launch(_sh_forward, d.shape[0], d, [fast_view(d, wp.vec3), fast_view(storage)])
+            fwd, _ = _sh_kernels(bf16)
+            launch(fwd, d.shape[0], d, [fast_view(d, wp.vec3), fast_view(storage)])
         ctx.save_for_backward(d)
-        return storage.t()
+        return storage if bf16 else storage.t()
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -108,20 +149,26 @@ class _SHEncode(torch.autograd.Function):
         grad_d = torch.empty_like(d)
         if d.shape[0]:
             g = grad_out.contiguous() if 0 in grad_out.stride() else grad_out  # any strides
+            _, bwd = _sh_kernels(grad_out.dtype == torch.bfloat16)
             launch(
-                _sh_backward,
+                bwd,
                 d.shape[0],
                 d,
                 [fast_view(d, wp.vec3), fast_view(g), fast_view(grad_d, wp.vec3)],
             )
-        return grad_d
+        return grad_d, None
 
 
-def sh_encode(d: torch.Tensor) -> torch.Tensor:
-    """SH basis of unit directions d: (N, 3) float32 -> (N, 16) float32, differentiable in d.
+def sh_encode(d: torch.Tensor, out_dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """SH basis of unit directions d: (N, 3) float32 -> (N, 16), differentiable in d.
 
-    The result is the transposed view of (16, N) storage (use ``.contiguous()`` before ``.view``).
+    float32 (out_dtype's default): the transposed view of (16, N) storage (use
+    ``.contiguous()`` before ``.view``). bfloat16, for an MLP that runs in it: row-major
+    (N, 16), the float32 basis rounded to nearest even (as `.to(torch.bfloat16)` makes it), and
+    the gradient read as bf16, without a cast's pass either way.
     """
     if d.ndim != 2 or d.shape[1] != 3 or d.dtype != torch.float32:
         raise ValueError(f"sh_encode: d must be (N, 3) float32, got {tuple(d.shape)} {d.dtype}")
-    return _SHEncode.apply(d.contiguous())
+    if out_dtype not in (torch.float32, torch.bfloat16):
+        raise ValueError(f"sh_encode: out_dtype must be float32 or bfloat16, got {out_dtype}")
+    return _SHEncode.apply(d.contiguous(), out_dtype)

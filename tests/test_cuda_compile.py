@@ -25,6 +25,7 @@ from fastenerf.kernels import (
     hashgrid_runs,
     occupancy,
     raymarch,
+    sh,
 )
 
 ARCH = 90  # H100 / H200
@@ -39,7 +40,7 @@ def training_kernels() -> list:
         out += [v for v in vars(mod).values() if isinstance(v, wp.Kernel)]
     for bf16 in (False, True):  # the features and their gradient in float32 or bfloat16
         out += [*hashgrid._kernels(2, bf16=bf16), hashgrid._tracked_backward(2, bf16)]
-        out += [hashgrid_runs.run_backward(2, 4, bf16)]
+        out += [hashgrid_runs.run_backward(2, 4, bf16), *sh._sh_kernels(bf16)]
     for flags in itertools.product((False, True), repeat=4):
         out += [composite._composite_bwd_kernel(*flags)]
         out += [composite_block.composite_bwd_block_kernel(*flags)]

@@ -62,3 +62,22 @@ def test_sh_rejects_bad_shape_and_handles_empty():
     with pytest.raises(ValueError, match="d must be"):
         sh_encode(torch.rand(4, 2))
     assert sh_encode(torch.zeros(0, 3)).shape == (0, 16)
+
+
+def test_bfloat16_basis_is_the_float32_one_rounded_and_reads_a_bfloat16_gradient():
+    """out_dtype=bfloat16: row-major (N, 16), bit for bit `.to(torch.bfloat16)` of the float32
+    basis; its bf16 gradient gives the float32 path's gradient for the same values, from a
+    strided gradient too (the colour MLP hands back a (N, 32) input gradient's columns)."""
+    d = torch.nn.functional.normalize(torch.randn(3000, 3), dim=1)
+    f32, b16 = d.clone().requires_grad_(), d.clone().requires_grad_()
+    a, b = sh_encode(f32), sh_encode(b16, out_dtype=torch.bfloat16)
+    assert b.dtype == torch.bfloat16 and b.is_contiguous() and b.shape == (3000, 16)
+    assert torch.equal(b, a.to(torch.bfloat16))
+    wide = torch.randn(3000, 32).to(torch.bfloat16)
+    g = wide[:, 16:]  # strided, as the concatenation's backward hands it
+    (ga,) = torch.autograd.grad(a, f32, g.float())
+    (gb,) = torch.autograd.grad(b, b16, g)
+    assert torch.equal(ga, gb) and ga.abs().sum() > 0
+    with pytest.raises(ValueError, match="out_dtype"):
+        sh_encode(d, out_dtype=torch.float16)
+    assert sh_encode(torch.zeros(0, 3), out_dtype=torch.bfloat16).shape == (0, 16)

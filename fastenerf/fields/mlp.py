@@ -227,8 +227,9 @@ class ColorMLP(MLP):
         return t
 
     def forward(self, h: torch.Tensor, sh: torch.Tensor) -> torch.Tensor:
-        # sh_encode hands over a transposed (16, N) storage; the cast writes rows, so that the
-        # concatenation below can move them as words
+        # sh_encode hands over a transposed (16, N) float32 storage, which the cast writes as
+        # rows, so that the concatenation below can move them as words (its bf16 output is
+        # rows already: no copy)
         parts = [h, sh.to(h.dtype, memory_format=torch.contiguous_format)]
         if self.n_pad:
             parts.append(h.new_zeros(()).expand(h.shape[0], self.n_pad))

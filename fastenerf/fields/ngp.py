@@ -247,8 +247,8 @@ class NGPField(Field):
         return sigma, h
 
     def _features_dtype(self, x: torch.Tensor) -> torch.dtype:
-        """What the hash grid writes its features in: bf16 with `bf16_features` while autocast
-        runs the MLPs in bf16 on x's device, else float32."""
+        """What the hash grid and the SH encoding write their features in: bf16 with
+        `bf16_features` while autocast runs the MLPs in bf16 on x's device, else float32."""
         kind = x.device.type
         on = self.options.network.bf16_features and torch.is_autocast_enabled(kind)
         return (
@@ -269,7 +269,7 @@ class NGPField(Field):
     def _radiance(self, h: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
         """Colours (N, 3) float32 in (0, 1) from `_geometry`'s h (N, 1 + geo_features) and unit
         view directions d (N, 3)."""
-        rgb = self.color_net(h, sh_encode(as_float32(d)))
+        rgb = self.color_net(h, sh_encode(as_float32(d), out_dtype=self._features_dtype(d)))
         return torch.sigmoid(_cast(rgb, torch.float32))
 
     def color(self, x: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
