@@ -86,23 +86,27 @@ def test_captured_step_matches_the_device_step(scene, tmp_path, copies):
     assert g.captures == before + copies
 
 
+def assert_trains_as(scene, tmp_path, base: dict, option: dict) -> None:
+    """On CUDA, `option` over NGP_TINY trains as `base` over it does, eagerly (to the GPU
+    atomics' order), and replayed from a graph as eagerly."""
+    steps = 3 * WARMUP + 6
+    a_opts, b_opts = {**NGP_TINY, **base}, {**NGP_TINY, **option}
+    runs = [("a", "device", a_opts), ("b", "device", b_opts), ("g", "graph", b_opts)]
+    trainers = [
+        make(scene, tmp_path / n, mode, "cuda", steps=steps, backend_options=o)
+        for n, mode, o in runs
+    ]
+    a, b, c = (losses(t, steps) for t in trainers)
+    graph = trainers[2].graph
+    assert graph.failure is None and graph.replays >= 3
+    assert b == pytest.approx(a, rel=2e-2) and c == pytest.approx(b, rel=1e-4)
+
+
 @pytest.mark.skipif(not CUDA, reason="no CUDA: the fused epilogue is cuBLASLt's")
 def test_fused_relu_steps_are_the_plain_mlps_steps_captured_or_not(scene, tmp_path):
     """fused_relu on the GPU (bf16 autocast, the GEMM's ReLU epilogue) trains as the plain
     MLPs do, eagerly and replayed from a graph."""
-    steps = 3 * WARMUP + 6
-    fused, plain = ({**NGP_TINY, "fused_relu": f} for f in (True, False))
-    a = losses(
-        make(scene, tmp_path / "plain", "device", "cuda", steps=steps, backend_options=plain),
-        steps,
-    )
-    b = losses(
-        make(scene, tmp_path / "f", "device", "cuda", steps=steps, backend_options=fused), steps
-    )
-    graph = make(scene, tmp_path / "g", "graph", "cuda", steps=steps, backend_options=fused)
-    c = losses(graph, steps)
-    assert graph.graph.failure is None and graph.graph.replays >= 3
-    assert b == pytest.approx(a, rel=2e-2) and c == pytest.approx(b, rel=1e-4)
+    assert_trains_as(scene, tmp_path, {"fused_relu": False}, {"fused_relu": True})
 
 
 @pytest.mark.skipif(not CUDA, reason="no CUDA: bf16 autocast and the block layouts are the GPU's")
@@ -110,19 +114,9 @@ def test_fused_relu_steps_are_the_plain_mlps_steps_captured_or_not(scene, tmp_pa
     "option", [{"bf16_features": True}, {"distortion_layout": "block"}], ids=["bf16", "block"]
 )
 def test_gpu_options_train_as_the_default_captured_or_not(scene, tmp_path, option):
-    """bf16_features (the hash grid's features in bf16) and the distortion loss's block layout
-    change how a step runs, not what it computes: eagerly as the default does (to the GPU
-    atomics' order), and replayed from a graph as eagerly."""
-    steps = 3 * WARMUP + 6
-    opts = {**NGP_TINY, **option}
-    a = losses(make(scene, tmp_path / "base", "device", "cuda", steps=steps), steps)
-    b = losses(
-        make(scene, tmp_path / "o", "device", "cuda", steps=steps, backend_options=opts), steps
-    )
-    graph = make(scene, tmp_path / "g", "graph", "cuda", steps=steps, backend_options=opts)
-    c = losses(graph, steps)
-    assert graph.graph.failure is None and graph.graph.replays >= 3
-    assert b == pytest.approx(a, rel=2e-2) and c == pytest.approx(b, rel=1e-4)
+    """bf16_features (the hash grid's and the SH's features in bf16) and the distortion loss's
+    block layout change how a step runs, not what it computes."""
+    assert_trains_as(scene, tmp_path, {}, option)
 
 
 @pytest.mark.parametrize("device", DEVICES)
