@@ -45,9 +45,15 @@ def lane_wmd(
 
 
 @wp.func
-def chunk_last(x: float, nb: int):
-    """The chunk's last lane's x, in every lane (the carry into the next chunk)."""
-    return wp.tile_extract(wp.tile(x), nb - 1)
+def chunk_prefixes(w: float, wm: float, W: float, WM: float, nb: int):
+    """(W_<k, WM_<k) of this lane from the carries W, WM of the earlier chunks and this
+    chunk's exclusive scans of w and w m; then the carries into the next chunk (the last
+    lane's inclusive sums, in every lane)."""
+    W_before = W + wp.untile(wp.tile_scan_exclusive(wp.tile(w)))
+    WM_before = WM + wp.untile(wp.tile_scan_exclusive(wp.tile(wm)))
+    W_next = wp.tile_extract(wp.tile(W_before + w), nb - 1)
+    WM_next = wp.tile_extract(wp.tile(WM_before + wm), nb - 1)
+    return W_before, WM_before, W_next, WM_next
 
 
 @wp.kernel(enable_backward=False)
@@ -72,12 +78,8 @@ def distortion_fwd_block(
     for chunk in range(0, n, nb):
         i = chunk + lane
         w, m, d = lane_wmd(weights, t_starts, t_ends, start + i, i < n)
-        wm = w * m
-        W_before = W + wp.untile(wp.tile_scan_exclusive(wp.tile(w)))
-        WM_before = WM + wp.untile(wp.tile_scan_exclusive(wp.tile(wm)))
+        W_before, WM_before, W, WM = chunk_prefixes(w, w * m, W, WM, nb)
         acc += wp.vec2(w * (m * W_before - WM_before), w * w * d)
-        W = chunk_last(W_before + w, nb)
-        WM = chunk_last(WM_before + wm, nb)
     tot = wp.tile_extract(wp.tile_sum(wp.tile(acc, preserve_type=True)), 0)
     if lane == 0:
         loss[r] = 2.0 * tot[0] + tot[1] / 3.0
@@ -109,13 +111,9 @@ def distortion_bwd_block(
         i = chunk + lane
         s = start + i
         w, m, d = lane_wmd(weights, t_starts, t_ends, s, i < n)
-        wm = w * m
-        W_before = W + wp.untile(wp.tile_scan_exclusive(wp.tile(w)))
-        WM_before = WM + wp.untile(wp.tile_scan_exclusive(wp.tile(wm)))
+        W_before, WM_before, W, WM = chunk_prefixes(w, w * m, W, WM, nb)
         if i < n:
             W_after = W_tot - W_before - w
-            WM_after = WM_tot - WM_before - wm
+            WM_after = WM_tot - WM_before - w * m
             pair = m * W_before - WM_before + WM_after - m * W_after
             grad_weights[s] = g * (2.0 * pair + 2.0 / 3.0 * w * d)
-        W = chunk_last(W_before + w, nb)
-        WM = chunk_last(WM_before + wm, nb)
