@@ -225,17 +225,19 @@ class NGPField(Field):
         if self.level_weights is not None:
             # expand, not repeat_interleave: nothing a captured step could wait on
             w = self.level_weights[:, None].expand(-1, cfg.n_features).reshape(-1)
-        on_values = w is not None and self.level_weights_mode != "gradient"
-        dt = torch.float32 if on_values else self._features_dtype(xn)
-        if w is not None and not on_values:
-            # coarse-to-fine on the pose gradient only (fields/level_weights.py), in the
-            # encoding's backward: one forward, the x-gradient weighted
-            feats = hash_grid_encode(
-                xn, table, cfg, x_grad_weights=w.float(), x_grad_mask=x_grad_mask, out_dtype=dt
-            )
-        else:
-            feats = hash_grid_encode(xn, table, cfg, x_grad_mask=x_grad_mask, out_dtype=dt)
-            feats = feats if w is None else feats * w
+        # coarse-to-fine on the pose gradient only (fields/level_weights.py) weights the
+        # x-gradient in the encoding's backward (one forward); on the values, the features
+        on_grad = w is not None and self.level_weights_mode == "gradient"
+        on_values = w is not None and not on_grad
+        feats = hash_grid_encode(
+            xn,
+            table,
+            cfg,
+            x_grad_weights=w.float() if on_grad else None,
+            x_grad_mask=x_grad_mask,
+            out_dtype=torch.float32 if on_values else self._features_dtype(xn),
+        )
+        feats = feats * w if on_values else feats
         if feats.dtype == torch.float32:
             feats = _cast(feats, self.density_net[0].weight.dtype)
         h = self.density_net(feats)
