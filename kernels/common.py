@@ -74,6 +74,16 @@ def as_float32(t: torch.Tensor, device: torch.device | None = None) -> torch.Ten
     return t.float().contiguous()
 
 
+FEATURE_DTYPES = (torch.float32, torch.bfloat16)
+"""What an encoding (hash grid, SH) can write its features in: float32, or bf16 for an MLP
+that runs in it."""
+
+
+def features_dtype(bf16: bool):
+    """The Warp scalar type an encoding's features and their gradient are stored in."""
+    return wp.bfloat16 if bf16 else wp.float32
+
+
 def fast_stream(t: torch.Tensor):
     """Warp stream for torch's current stream on t's device (None on CPU), cached."""
     if t.device.type != "cuda":

@@ -42,12 +42,11 @@ import numpy as np
 import torch
 import warp as wp
 
-from .common import as_float32, device_of, fast_view, init, launch
+from .common import FEATURE_DTYPES, as_float32, device_of, fast_view, features_dtype, init, launch
 from .gridconfig import HashGridConfig
 from .hashgrid_cells import (
     cell_of,
     corner_weight,
-    features_dtype,
     grad_loader,
     grid_index,
     grouped,
@@ -340,10 +339,6 @@ def grid_indices(ijk: torch.Tensor, level: int, cfg: HashGridConfig) -> torch.Te
         [fast_view(ijk, wp.vec3i), _levels_wp(cfg, dev), int(level), out],
     )
     return out
-
-
-FEATURE_DTYPES = (torch.float32, torch.bfloat16)
-"""What the features can be written in (`hash_grid_encode`'s out_dtype)."""
 
 
 def _alloc_out(

@@ -5,7 +5,7 @@ import functools
 
 import warp as wp
 
-from .common import init
+from .common import features_dtype, init
 
 init()
 
@@ -73,11 +73,6 @@ def grouped(tid: int, n: int, group: int):
     r = tid - gi * gsize
     i = r // group
     return gi * group + (r - i * group), i
-
-
-def features_dtype(bf16: bool):
-    """The Warp scalar type the encoding's features and their gradient are stored in."""
-    return wp.bfloat16 if bf16 else wp.float32
 
 
 @functools.cache

@@ -10,8 +10,8 @@ import functools
 
 import warp as wp
 
-from .common import init
-from .hashgrid_cells import cell_of, corner_weight, features_dtype, grad_loader, grouped, pair_rows
+from .common import features_dtype, init
+from .hashgrid_cells import cell_of, corner_weight, grad_loader, grouped, pair_rows
 from .vector_memory import scatter_func, scatter_pair
 
 init()

@@ -10,7 +10,7 @@ import functools
 import torch
 import warp as wp
 
-from .common import fast_view, init, launch
+from .common import FEATURE_DTYPES, fast_view, features_dtype, init, launch
 
 init()
 
@@ -22,7 +22,7 @@ def _sh_kernels(bf16: bool):
     """(forward, backward) kernels. float32: the basis written feature-major, (16, N) storage
     handed on transposed; bf16 (`sh_encode`'s out_dtype): written row-major, (N, 16), each
     value rounded to nearest even, and the gradient read as bf16. The arithmetic is float32."""
-    ft = wp.bfloat16 if bf16 else wp.float32
+    ft = features_dtype(bf16)
 
     @wp.func
     def store(out: wp.array2d(dtype=ft), i: int, k: int, v: float):
@@ -169,6 +169,6 @@ def sh_encode(d: torch.Tensor, out_dtype: torch.dtype = torch.float32) -> torch.
     """
     if d.ndim != 2 or d.shape[1] != 3 or d.dtype != torch.float32:
         raise ValueError(f"sh_encode: d must be (N, 3) float32, got {tuple(d.shape)} {d.dtype}")
-    if out_dtype not in (torch.float32, torch.bfloat16):
-        raise ValueError(f"sh_encode: out_dtype must be float32 or bfloat16, got {out_dtype}")
+    if out_dtype not in FEATURE_DTYPES:
+        raise ValueError(f"sh_encode: out_dtype must be one of {FEATURE_DTYPES}, got {out_dtype}")
     return _SHEncode.apply(d.contiguous(), out_dtype)
