@@ -7,6 +7,8 @@
 #   ready SCENE    waits up to 900 s for DATA/SCENE.ready (a later call copies the scene in)
 #   profile NAME SCENE [ARGS]   `benchmarks.profile_step` of DATA/SCENE at WARMUP (1000) steps,
 #                  50 profiled, into RES/NAME (its log RES/NAME.log), then a progress note
+#   gaps NAME VARIANT   RES/NAME/VARIANT's trace (a `profile --trace`) read by
+#                  `benchmarks.trace_gaps` into RES/gaps_NAME_VARIANT.md, then a progress note
 #   run_lists LIST...   each HERE/LIST (a gpu_runs60.sh list, NAME.txt) in turn into RES/NAME
 #                  (the job's HERE/COMMIT recorded), then "runs done" and RES/all.done
 # DEVICE (cuda unless set) is exported for the job's commands.
@@ -22,6 +24,11 @@ profile() {
     $PY -m benchmarks.profile_step --scene "$DATA/$scene" --device "$DEVICE" \
         --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/$name" "$@" > "$RES/$name.log" 2>&1
     note "profile $name rc $?"
+}
+gaps() {
+    $PY -m benchmarks.trace_gaps "$RES/$1/$2/trace.json.gz" --out "$RES/gaps_$1_$2.md" \
+        > "$RES/gaps_$1_$2.log" 2>&1
+    note "trace_gaps $1 $2 rc $?"
 }
 run_lists() {
     local commit list

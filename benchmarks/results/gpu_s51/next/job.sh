@@ -18,7 +18,7 @@ set -u
 HERE=$(cd "$(dirname "$0")" && pwd)
 AFTER=${AFTER:-/var/tmp/after}; DATA=${DATA:-/var/tmp/data}
 RES=${RES:-/var/tmp/res}/s52
-source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, profile, $PY, DEVICE; cd to the tree
+source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, profile, gaps, $PY, DEVICE; cd there
 FASTENERF_TINY_SCENE=$HERE/tiny/scene timeout 600 $PY -m pytest -q -p no:cacheprovider \
     tests/test_mlp_widths.py tests/test_graph_step.py \
     -k "(relu or captured or capture_copy) and not falls_back and not needs_a_captured" \
@@ -27,11 +27,6 @@ note "CUDA tests rc $?"
 $PY -m benchmarks.kernels_render --device "$DEVICE" --only distortion \
     > "$RES/kernels_distortion.json" 2> "$RES/kernels_distortion.log"
 note "kernels_render distortion rc $?"
-gaps() {  # NAME VARIANT: RES/NAME/VARIANT's trace read into RES/gaps_NAME_VARIANT.md
-    $PY -m benchmarks.trace_gaps "$RES/$1/$2/trace.json.gz" --out "$RES/gaps_$1_$2.md" \
-        > "$RES/gaps_$1_$2.log" 2>&1
-    note "trace_gaps $1 $2 rc $?"
-}
 ready shiny  # the last scene staged: the profiles run on a quiet machine
 for s in toyset shiny blocks plant lattice; do
     profile "prof_$s" "$s" --trace --variant 'base={}' \
