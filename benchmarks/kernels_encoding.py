@@ -181,6 +181,15 @@ def bench_sh(device="cuda", n_points=2**20, repeats=50) -> dict:
     def wfb():
         return torch.autograd.grad(sh_encode(d), d, g)
 
+    gb = g.to(torch.bfloat16)
+
+    def wfwd_bf16():
+        with torch.no_grad():
+            return sh_encode(d, out_dtype=torch.bfloat16)
+
+    def wfb_bf16():
+        return torch.autograd.grad(sh_encode(d, out_dtype=torch.bfloat16), d, gb)
+
     def tfwd():
         with torch.no_grad():
             return torch_sh_encode(d)
@@ -190,6 +199,8 @@ def bench_sh(device="cuda", n_points=2**20, repeats=50) -> dict:
 
     r["warp_fwd_ms"] = _time_ms(wfwd, device, repeats)
     r["warp_fwdbwd_ms"] = _time_ms(wfb, device, repeats)
+    r["warp_fwd_bf16_ms"] = _time_ms(wfwd_bf16, device, repeats)
+    r["warp_fwdbwd_bf16_ms"] = _time_ms(wfb_bf16, device, repeats)
     r["torch_fwd_ms"] = _time_ms(tfwd, device, repeats)
     r["torch_fwdbwd_ms"] = _time_ms(tfb, device, repeats)
     r["speedup_fwdbwd"] = r["torch_fwdbwd_ms"] / r["warp_fwdbwd_ms"]

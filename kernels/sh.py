@@ -17,19 +17,43 @@ init()
 N_COEFFS = 16
 
 
+VEC16 = wp.types.vector(length=N_COEFFS, dtype=wp.float32)
+
+
+@wp.func
+def sh_basis(v: wp.vec3) -> VEC16:
+    """The 16 coefficients of unit direction v, float32."""
+    x, y, z = v[0], v[1], v[2]
+    xy, xz, yz = x * y, x * z, y * z
+    x2, y2, z2 = x * x, y * y, z * z
+    return VEC16(
+        0.28209479177387814,  # 1/(2 sqrt(pi))
+        -0.48860251190291987 * y,  # sqrt(3)/(2 sqrt(pi))
+        0.48860251190291987 * z,
+        -0.48860251190291987 * x,
+        1.0925484305920792 * xy,  # sqrt(15)/(2 sqrt(pi))
+        -1.0925484305920792 * yz,
+        0.94617469575755997 * z2 - 0.31539156525251999,  # sqrt(5)(3z^2-1)/(4 sqrt(pi))
+        -1.0925484305920792 * xz,
+        0.54627421529603959 * (x2 - y2),  # sqrt(15)/(4 sqrt(pi))
+        0.59004358992664352 * y * (y2 - 3.0 * x2),  # sqrt(70)/(8 sqrt(pi))
+        2.8906114426405538 * xy * z,  # sqrt(105)/(2 sqrt(pi))
+        0.45704579946446572 * y * (1.0 - 5.0 * z2),  # sqrt(42)/(8 sqrt(pi))
+        0.3731763325901154 * z * (5.0 * z2 - 3.0),  # sqrt(7)/(4 sqrt(pi))
+        0.45704579946446572 * x * (1.0 - 5.0 * z2),
+        1.4453057213202769 * z * (x2 - y2),  # sqrt(105)/(4 sqrt(pi))
+        0.59004358992664352 * x * (3.0 * y2 - x2),
+    )
+
+
 @functools.cache
 def _sh_kernels(bf16: bool):
-    """(forward, backward) kernels. float32: the basis written feature-major, (16, N) storage
-    handed on transposed; bf16 (`sh_encode`'s out_dtype): written row-major, (N, 16), each
-    value rounded to nearest even, and the gradient read as bf16. The arithmetic is float32."""
+    """(forward, backward) kernels. float32: one thread a direction, the basis written
+    feature-major, (16, N) storage handed on transposed; bf16 (`sh_encode`'s out_dtype):
+    written row-major, (N, 16), one thread a coefficient (a thread writing a whole 32-byte row
+    leaves a warp's stores 32 bytes apart), each value rounded to nearest even, and the
+    gradient read as bf16. The arithmetic is float32."""
     ft = features_dtype(bf16)
-
-    @wp.func
-    def store(out: wp.array2d(dtype=ft), i: int, k: int, v: float):
-        if wp.static(bf16):
-            out[i, k] = ft(v)
-        else:
-            out[k, i] = v
 
     @wp.func
     def load(g: wp.array2d(dtype=ft), i: int, k: int) -> float:
@@ -37,28 +61,20 @@ def _sh_kernels(bf16: bool):
 
     @wp.kernel(enable_backward=False, module="unique")
     def sh_forward(d: wp.array(dtype=wp.vec3), out: wp.array2d(dtype=ft)):
-        i = wp.tid()
-        v = d[i]
-        x, y, z = v[0], v[1], v[2]
-        xy, xz, yz = x * y, x * z, y * z
-        x2, y2, z2 = x * x, y * y, z * z
-        store(out, i, 0, 0.28209479177387814)  # 1/(2 sqrt(pi))
-        store(out, i, 1, -0.48860251190291987 * y)  # sqrt(3)/(2 sqrt(pi))
-        store(out, i, 2, 0.48860251190291987 * z)
-        store(out, i, 3, -0.48860251190291987 * x)
-        store(out, i, 4, 1.0925484305920792 * xy)  # sqrt(15)/(2 sqrt(pi))
-        store(out, i, 5, -1.0925484305920792 * yz)
-        # sqrt(5)(3z^2-1)/(4 sqrt(pi))
-        store(out, i, 6, 0.94617469575755997 * z2 - 0.31539156525251999)
-        store(out, i, 7, -1.0925484305920792 * xz)
-        store(out, i, 8, 0.54627421529603959 * (x2 - y2))  # sqrt(15)/(4 sqrt(pi))
-        store(out, i, 9, 0.59004358992664352 * y * (y2 - 3.0 * x2))  # sqrt(70)/(8 sqrt(pi))
-        store(out, i, 10, 2.8906114426405538 * xy * z)  # sqrt(105)/(2 sqrt(pi))
-        store(out, i, 11, 0.45704579946446572 * y * (1.0 - 5.0 * z2))  # sqrt(42)/(8 sqrt(pi))
-        store(out, i, 12, 0.3731763325901154 * z * (5.0 * z2 - 3.0))  # sqrt(7)/(4 sqrt(pi))
-        store(out, i, 13, 0.45704579946446572 * x * (1.0 - 5.0 * z2))
-        store(out, i, 14, 1.4453057213202769 * z * (x2 - y2))  # sqrt(105)/(4 sqrt(pi))
-        store(out, i, 15, 0.59004358992664352 * x * (3.0 * y2 - x2))
+        t = wp.tid()
+        if wp.static(bf16):
+            i = t // N_COEFFS
+            k = t - i * N_COEFFS
+            b = sh_basis(d[i])
+            v = 0.0
+            for j in range(N_COEFFS):  # constant indices: the basis stays in registers
+                if j == k:
+                    v = b[j]
+            out[i, k] = ft(v)
+        else:
+            b = sh_basis(d[t])
+            for k in range(N_COEFFS):
+                out[k, t] = b[k]
 
     @wp.kernel(enable_backward=False, module="unique")
     def sh_backward(
@@ -138,7 +154,12 @@ class _SHEncode(torch.autograd.Function):
         storage = torch.empty(shape, dtype=out_dtype, device=d.device)
         if d.shape[0]:
             fwd, _ = _sh_kernels(bf16)
-            launch(fwd, d.shape[0], d, [fast_view(d, wp.vec3), fast_view(storage)])
+            launch(
+                fwd,
+                d.shape[0] * (N_COEFFS if bf16 else 1),
+                d,
+                [fast_view(d, wp.vec3), fast_view(storage)],
+            )
         ctx.save_for_backward(d)
         return storage if bf16 else storage.t()
 
