@@ -49,7 +49,7 @@ class NetworkOptions:
     write their features and read their gradient in bf16 (kernels/hashgrid.py, sh.py): the
     values the MLPs would cast them to anyway (both round to nearest even), without the
     casts' passes over every sample's features. The hash grid's stay float32 where
-    coarse-to-fine weights the features' values."""
+    coarse-to-fine weights the features' values. New CUDA runs set it (`GPU_NETWORK`)."""
 
 
 @dataclass
@@ -315,7 +315,7 @@ COMPACTION_KEYS = ("early_stop_eps", "alpha_threshold", "compaction_auto")
 GPU_COMPACTION = {"early_stop_eps": 1e-4, "compaction_auto": True}
 # The ReLU in the GEMM's epilogue on CUDA (measured on every built-in scene and the mesh
 # scene, benchmarks/RESULTS.md, the thirty-ninth session); the CPU has no such epilogue.
-GPU_NETWORK = {"fused_relu": True}
+GPU_NETWORK = {"fused_relu": True, "bf16_features": True}
 
 
 def ngp_run_defaults(opts: dict | None, cone: float, device: str) -> dict:

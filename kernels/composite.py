@@ -211,9 +211,9 @@ scene and the mesh scene at the same PSNR (benchmarks/RESULTS.md); the CPU alway
 (its blocks are emulated)."""
 
 
-DISTORTION_CUDA_AUTO = "ray"
-"""What "auto" takes on CUDA for the distortion loss: "ray" until "block" is measured in
-training on every built-in scene and the mesh scene."""
+DISTORTION_CUDA_AUTO = "block"
+"""What "auto" takes on CUDA for the distortion loss: "block", shorter in training on every
+built-in scene and the mesh scene (benchmarks/RESULTS.md)."""
 
 
 def resolve_layout(layout: Layout, device: torch.device, cuda_auto: str = CUDA_AUTO) -> str:

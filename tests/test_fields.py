@@ -836,7 +836,7 @@ def test_compaction_switch_hysteresis():
 
 
 def test_new_gpu_runs_compact_where_it_pays_cpu_runs_do_not():
-    """The preset writes compaction_auto and fused_relu into a new CUDA run's options (and
+    """The preset writes compaction_auto and GPU_NETWORK into a new CUDA run's options (and
     the cone into every run's), never over an option the user set, flat or by section."""
     from fastenerf.backends import ngp_run_defaults
     from fastenerf.config import train_preset
@@ -847,20 +847,22 @@ def test_new_gpu_runs_compact_where_it_pays_cpu_runs_do_not():
         "early_stop_eps": 1e-4,
         "compaction_auto": True,
         "fused_relu": True,
+        "bf16_features": True,
     }
     assert ngp_run_defaults({}, 0.0, "cpu") == {"cone_angle": 0.0}
     mine = {"marcher": {"early_stop_eps": 0.0}, "network": {"fused_relu": False}}
     assert ngp_run_defaults(mine, 0.5, "cuda") == {
         "marcher": {"early_stop_eps": 0.0, "cone_angle": 0.5},
-        "network": {"fused_relu": False},
+        "network": {"fused_relu": False, "bf16_features": True},
     }
     assert ngp_run_defaults({"alpha_threshold": 0.01}, 0.0, "cuda")["alpha_threshold"] == 0.01
     assert ngp_run_defaults({"fused_relu": False}, 0.0, "cuda")["fused_relu"] is False
     cfg = train_preset("fast", "ngp", device="cuda", minutes=1.0)
     assert cfg.backend_options["compaction_auto"] is True
     assert cfg.backend_options["fused_relu"] is True
+    assert cfg.backend_options["bf16_features"] is True
     cpu = train_preset("fast", "ngp", device="cpu").backend_options
-    assert "compaction_auto" not in cpu and "fused_relu" not in cpu
+    assert not {"compaction_auto", "fused_relu", "bf16_features"} & set(cpu)
 
 
 def test_ngp_distortion_layout_is_how_the_loss_runs_not_what_it_is(make):

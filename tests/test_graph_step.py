@@ -112,12 +112,17 @@ def test_fused_relu_steps_are_the_plain_mlps_steps_captured_or_not(scene, tmp_pa
 
 @pytest.mark.skipif(not CUDA, reason="no CUDA: bf16 autocast and the block layouts are the GPU's")
 @pytest.mark.parametrize(
-    "option", [{"bf16_features": True}, {"distortion_layout": "block"}], ids=["bf16", "block"]
+    "base, option",
+    [
+        ({"bf16_features": False}, {"bf16_features": True}),
+        ({"distortion_layout": "ray"}, {"distortion_layout": "block"}),
+    ],
+    ids=["bf16", "block"],
 )
-def test_gpu_options_train_as_the_default_captured_or_not(scene, tmp_path, option):
+def test_gpu_options_train_as_without_them_captured_or_not(scene, tmp_path, base, option):
     """bf16_features (the hash grid's and the SH's features in bf16) and the distortion loss's
     block layout change how a step runs, not what it computes."""
-    assert_trains_as(scene, tmp_path, {}, option)
+    assert_trains_as(scene, tmp_path, base, option)
 
 
 @pytest.mark.parametrize("device", DEVICES)

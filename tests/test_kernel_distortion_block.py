@@ -42,7 +42,7 @@ def _loss_and_grad(w, t_s, t_e, pi, layout, g):
 
 def test_layout_choice():
     assert resolve_layout("auto", torch.device("cpu"), DISTORTION_CUDA_AUTO) == "ray"
-    assert resolve_layout("auto", torch.device("cuda"), DISTORTION_CUDA_AUTO) in ("ray", "block")
+    assert resolve_layout("auto", torch.device("cuda"), DISTORTION_CUDA_AUTO) == "block"
     x = torch.rand(2)
     with pytest.raises(ValueError, match="layout"):
         distortion_loss(x, x, x + 0.1, _packed(torch.tensor([2])), layout="warp")
