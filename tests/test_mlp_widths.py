@@ -16,6 +16,7 @@ from fastenerf.fields.mlp import (
     _as_words,
     _word_for,
     concat_rows,
+    density_logit,
     linear_relu,
     mlp,
 )
@@ -217,6 +218,50 @@ def test_the_colour_mlp_concatenates_the_fields_own_sh_as_words():
         grads.append(g)
     assert torch.isfinite(grads[0]).all() and grads[0].abs().sum() > 0
     assert torch.equal(grads[0], grads[1])
+
+
+def _heads_grads(split, dtype, colour: bool, logit: bool):
+    """h's gradient through the σ logit and the colour MLP, the logit split from h by `split`."""
+    torch.manual_seed(3)
+    net = ColorMLP(15, 64).to(dtype)
+    h = torch.randn(200, 16, dtype=torch.float64).to(dtype).requires_grad_(True)
+    sh = torch.randn(200, 16, dtype=torch.float64).to(dtype)
+    lg, hc = split(h)
+    loss = (lg * torch.linspace(-2, 2, 200, dtype=lg.dtype)).sum() if logit else 0.0
+    if colour:
+        loss = loss + net(hc, sh).float().square().sum()
+    (g,) = torch.autograd.grad(loss, h)
+    return g
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.bfloat16])
+@pytest.mark.parametrize("colour, logit", [(True, True), (False, True), (True, False)])
+def test_density_logit_gradient_is_the_selects_bit_for_bit(dtype, colour, logit):
+    """density_logit adds the logit's gradient into the colour MLP's column 0 in place: the
+    same bits as h[:, 0].float() beside h (a zero-filled select added to the colour's)."""
+
+    def select(h):
+        return h[:, 0].float(), h
+
+    got = _heads_grads(density_logit, dtype, colour, logit)
+    want = _heads_grads(select, dtype, colour, logit)
+    assert got.dtype == dtype and torch.equal(got, want)
+    assert (got[:, 0] != 0).any() == logit and (got[:, 1:] != 0).any() == colour
+
+
+def test_density_logit_adds_into_a_gradient_it_does_not_own_out_of_place():
+    """A gradient that another branch also reads (a pass-through's, or a broadcast) is not
+    written: the logit's is added into a copy. Fails if the guard is dropped."""
+    h = torch.randn(50, 16, dtype=torch.float64, requires_grad=True)
+    lg, hc = density_logit(h)
+    other = torch.zeros(50, 16, dtype=torch.float64, requires_grad=True)
+    s = hc + other  # add's backward hands the same dense gradient tensor to both inputs
+    w = torch.ones(50, 16, dtype=torch.float64)
+    (gh, go) = torch.autograd.grad(lg.sum() + (s * w).sum(), (h, other))
+    assert torch.equal(go, torch.ones(50, 16, dtype=torch.float64))
+    assert torch.equal(gh[:, 0], torch.full((50,), 2.0, dtype=torch.float64))
+    (gh,) = torch.autograd.grad(lg.sum() + hc.sum(), h)  # an expanded ones tensor
+    assert torch.equal(gh[:, 1:], torch.ones(50, 15, dtype=torch.float64))
 
 
 def test_linear_relu_is_relu_of_linear_values_and_gradients():

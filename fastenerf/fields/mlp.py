@@ -174,6 +174,45 @@ def concat_rows(parts: list[torch.Tensor]) -> torch.Tensor:
     return _ConcatRows.apply(*parts)
 
 
+class _DensityLogit(torch.autograd.Function):
+    """(σ logit (N,) float32, h) from the density MLP's output h (N, 1 + geo): h's single
+    consumer, so that its gradient is the colour MLP's with the logit's added into column 0,
+    where the colour MLP's masked first weights leave zeros (ColorMLP), rather than a
+    zero-filled select's gradient added to the whole of it: one pass over every sample's h
+    gradient, and a fill, fewer."""
+
+    @staticmethod
+    def forward(ctx, h: torch.Tensor):
+        ctx.set_materialize_grads(False)
+        ctx.meta = (h.shape, h.dtype, h.device)
+        return h[:, 0].float(), h.view_as(h)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_logit, g_h):
+        shape, dtype, device = ctx.meta
+        if g_h is None:
+            g_h = torch.zeros(shape, dtype=dtype, device=device)
+        elif not _owned_rows(g_h):
+            g_h = g_h.clone()
+        if g_logit is not None:
+            g_h[:, 0] += g_logit.to(dtype)
+        return g_h
+
+
+def _owned_rows(g: torch.Tensor) -> bool:
+    """Whether g is a slice of rows written by the backward that made it (the colour MLP's
+    input gradient, split by _ConcatRows), so adding into its first column touches nothing
+    another gradient reads: a view of a dense buffer, rows apart by at least their width."""
+    return g._base is not None and g.stride(1) == 1 and g.stride(0) >= g.shape[1]
+
+
+def density_logit(h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The density MLP's output h (N, 1 + geo) -> (its column 0 as float32 (N,), h for the
+    colour MLP), the gradients those of `h[:, 0].float()` and h."""
+    return _DensityLogit.apply(h)
+
+
 class ColorMLP(MLP):
     """Colour logits (N, 3) from the density MLP's output h (N, 1 + geo_features), σ logit
     first, and the view directions' SH (N, 16); two hidden layers of `hidden`, no biases.

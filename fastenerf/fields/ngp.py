@@ -34,7 +34,7 @@ from ..kernels.ray_points import ray_points
 from ..kernels.raymarch_fixed import FixedSamples
 from ..kernels.sh import sh_encode
 from .base import Field, RenderOutput, check_points, park_non_finite
-from .mlp import ColorMLP
+from .mlp import ColorMLP, density_logit
 from .mlp import mlp as _mlp
 from .occupancy_sampler import OccupancySampler
 
@@ -240,9 +240,9 @@ class NGPField(Field):
         feats = feats * w if on_values else feats
         if feats.dtype == torch.float32:
             feats = _cast(feats, self.density_net[0].weight.dtype)
-        h = self.density_net(feats)
+        logit, h = density_logit(self.density_net(feats))
         net = self.options.network
-        logit = _cast(h[:, 0], torch.float32) + net.density_bias
+        logit = logit + net.density_bias
         sigma = trunc_exp(logit, net.max_log_density)
         if self.cylinder is not None:
             sigma = clip_density(sigma, x, self.cylinder)
