@@ -313,8 +313,9 @@ def set_option(name: str, d: dict | None, key: str, value: Any) -> dict:
 # benchmarks/RESULTS.md); the CPU preset's runs are not measured with it and keep it off.
 COMPACTION_KEYS = ("early_stop_eps", "alpha_threshold", "compaction_auto")
 GPU_COMPACTION = {"early_stop_eps": 1e-4, "compaction_auto": True}
-# The ReLU in the GEMM's epilogue on CUDA (measured on every built-in scene and the mesh
-# scene, benchmarks/RESULTS.md, the thirty-ninth session); the CPU has no such epilogue.
+# The ReLU in the GEMM's epilogue and the encodings' features in bf16 on CUDA (each measured
+# on every built-in scene and the mesh scene, benchmarks/RESULTS.md); the CPU has neither
+# the epilogue nor bf16 autocast.
 GPU_NETWORK = {"fused_relu": True, "bf16_features": True}
 
 
