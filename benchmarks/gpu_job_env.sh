@@ -9,6 +9,8 @@
 #                  50 profiled, into RES/NAME (its log RES/NAME.log), then a progress note
 #   gaps NAME VARIANT   RES/NAME/VARIANT's trace (a `profile --trace`) read by
 #                  `benchmarks.trace_gaps` into RES/gaps_NAME_VARIANT.md, then a progress note
+#   cuda_tests TEST_ARGS...   pytest on the tiny test scene HERE/tiny/scene (made before the
+#                  lease: the machine cannot draw one) into RES/tests_cuda.log, then a note
 #   run_lists LIST...   each HERE/LIST (a gpu_runs60.sh list, NAME.txt) in turn into RES/NAME
 #                  (the job's HERE/COMMIT recorded), then "runs done" and RES/all.done
 # DEVICE (cuda unless set) is exported for the job's commands.
@@ -29,6 +31,11 @@ gaps() {
     $PY -m benchmarks.trace_gaps "$RES/$1/$2/trace.json.gz" --out "$RES/gaps_$1_$2.md" \
         > "$RES/gaps_$1_$2.log" 2>&1
     note "trace_gaps $1 $2 rc $?"
+}
+cuda_tests() {
+    FASTENERF_TINY_SCENE=$HERE/tiny/scene timeout 600 $PY -m pytest -q -p no:cacheprovider \
+        "$@" > "$RES/tests_cuda.log" 2>&1
+    note "CUDA tests rc $?"
 }
 run_lists() {
     local commit list

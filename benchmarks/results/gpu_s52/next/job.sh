@@ -18,12 +18,9 @@ set -u
 HERE=$(cd "$(dirname "$0")" && pwd)
 AFTER=${AFTER:-/var/tmp/after}; DATA=${DATA:-/var/tmp/data}
 RES=${RES:-/var/tmp/res}/s53
-source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, profile, gaps, $PY, DEVICE; cd there
-FASTENERF_TINY_SCENE=$HERE/tiny/scene timeout 600 $PY -m pytest -q -p no:cacheprovider \
-    tests/test_mlp_widths.py tests/test_graph_step.py \
-    -k "(relu or captured or capture_copy) and not falls_back and not needs_a_captured" \
-    > "$RES/tests_cuda.log" 2>&1
-note "CUDA tests rc $?"
+source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, profile, gaps, cuda_tests, $PY; cd there
+cuda_tests tests/test_mlp_widths.py tests/test_graph_step.py \
+    -k "(relu or captured or capture_copy) and not falls_back and not needs_a_captured"
 $PY -m benchmarks.kernels_encoding --device "$DEVICE" --json "$RES/kernels_encoding.json" \
     > "$RES/kernels_encoding.log" 2>&1
 note "kernels_encoding rc $?"
