@@ -394,11 +394,22 @@ def _launch_tracked(x, g_wp, cfg: HashGridConfig, grad_table, tracker, bf16: boo
     tracker.passes += 1
 
 
+def _gather_points(features: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """(M, C) features in either of the forward's layouts -> (N, C) of `rows` (N,), int32 or
+    int64, in the same layout (feature-major storage gathered along its points)."""
+    if features.shape[1] > 1 and features.stride(0) == 1:
+        return features.t().index_select(1, rows).t()
+    return features.index_select(0, rows)
+
+
 class _HashGridEncode(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, x, table, cfg, variant, x_grad_weights, x_grad_mask, out_dtype):
-        storage = _alloc_out(x.shape[0], cfg, variant, x.device, out_dtype)
-        out = _launch_forward(x, table, cfg, variant, storage)
+    def forward(ctx, x, table, cfg, variant, x_grad_weights, x_grad_mask, out_dtype, from_rows):
+        if from_rows is not None:
+            out = _gather_points(*from_rows)
+        else:
+            storage = _alloc_out(x.shape[0], cfg, variant, x.device, out_dtype)
+            out = _launch_forward(x, table, cfg, variant, storage)
         ctx.save_for_backward(x, table)
         ctx.cfg, ctx.variant, ctx.x_grad_weights = cfg, variant, x_grad_weights
         ctx.x_grad_mask = x_grad_mask
@@ -463,7 +474,7 @@ class _HashGridEncode(torch.autograd.Function):
                         fast_view(grad_x, wp.vec3),
                     ],
                 )
-        return grad_x, grad_table, None, None, None, None, None
+        return grad_x, grad_table, None, None, None, None, None, None
 
 
 def hash_grid_encode(
@@ -474,6 +485,7 @@ def hash_grid_encode(
     x_grad_weights: torch.Tensor | None = None,
     x_grad_mask: torch.Tensor | None = None,
     out_dtype: torch.dtype = torch.float32,
+    from_rows: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Encode points x: (N, 3) float32 in [0, 1]^3 with table (n_params, F) -> (N, L*F) float32.
 
@@ -490,6 +502,10 @@ def hash_grid_encode(
     nearest even (as `.to(torch.bfloat16)` of the float32 ones) and their gradient read as
     bfloat16, without a cast's pass over the (N, L*F) features either way; the arithmetic
     and the table stay float32.
+    from_rows: optional (features, rows): this encoding of M points made before, in
+    out_dtype (e.g. under no_grad, for a prune's density pass), and rows (N,) int32 or int64,
+    each of x's points' row in it: the value is gathered from it instead of encoded again
+    (the caller vouches that those rows are x's encoding); the backward is unchanged.
     """
     if out_dtype not in FEATURE_DTYPES:
         raise ValueError(
@@ -522,6 +538,26 @@ def hash_grid_encode(
             f"hash_grid_encode: x_grad_mask must be ({x.shape[0]},) bool on {x.device}, got "
             f"{tuple(x_grad_mask.shape)} {x_grad_mask.dtype} on {x_grad_mask.device}"
         )
+    if from_rows is not None:
+        _check_from_rows(*from_rows, x, cfg, out_dtype)
     mask = None if x_grad_mask is None else x_grad_mask.contiguous()
     w = None if x_grad_weights is None else as_float32(x_grad_weights, x.device)
-    return _HashGridEncode.apply(x.contiguous(), table, cfg, _variant, w, mask, out_dtype)
+    args = (x.contiguous(), table, cfg, _variant, w, mask, out_dtype, from_rows)
+    return _HashGridEncode.apply(*args)
+
+
+def _check_from_rows(features, rows, x, cfg: HashGridConfig, out_dtype) -> None:
+    """ValueError unless `hash_grid_encode`'s from_rows fit x and the encoding."""
+    c = cfg.n_output_dims
+    if features.ndim != 2 or features.shape[1] != c or features.dtype != out_dtype:
+        raise ValueError(
+            f"hash_grid_encode: from_rows' features must be (M, {c}) {out_dtype}, got "
+            f"{tuple(features.shape)} {features.dtype}"
+        )
+    if rows.shape != (x.shape[0],) or rows.dtype not in (torch.int32, torch.int64):
+        raise ValueError(
+            f"hash_grid_encode: from_rows' rows must be ({x.shape[0]},) int32 or int64, got "
+            f"{tuple(rows.shape)} {rows.dtype}"
+        )
+    if features.device != x.device or rows.device != x.device:
+        raise ValueError(f"hash_grid_encode: from_rows must be on x's device, {x.device}")

@@ -92,9 +92,11 @@ def _compact(
     out_t_starts: wp.array(dtype=float),
     out_t_ends: wp.array(dtype=float),
     out_ray_indices: wp.array(dtype=wp.int32),
+    out_src: wp.array(dtype=wp.int32),
 ):
     """One thread per ray: copies the first dest[r][1] kept samples of its input slice to
-    [dest[r][0], dest[r][0] + dest[r][1]) (a count of 0, an overflowed ray, writes nothing)."""
+    [dest[r][0], dest[r][0] + dest[r][1]), with each one's input slot in out_src (a count of
+    0, an overflowed ray, writes nothing)."""
     r = wp.tid()
     s = packed_info[r][0]
     base = dest[r][0]
@@ -105,6 +107,7 @@ def _compact(
             out_t_starts[base + j] = t_starts[s]
             out_t_ends[base + j] = t_ends[s]
             out_ray_indices[base + j] = r
+            out_src[base + j] = s
             j += 1
         s += 1
 
@@ -141,9 +144,10 @@ def _visibility_pass(sigmas, packed_info, t_starts, t_ends, eps, alpha_threshold
     return keep, counts
 
 
-def _compact_pass(keep, t_starts, t_ends, packed_info, dest, out_t_s, out_t_e, out_ri) -> None:
+def _compact_pass(keep, t_starts, t_ends, packed_info, dest, outs) -> None:
+    """`_compact` into outs = (t_starts, t_ends, ray_indices, src)."""
     args = [keep, t_starts, t_ends, fast_view(packed_info, wp.vec2i), fast_view(dest, wp.vec2i)]
-    launch(_compact, packed_info.shape[0], t_starts, [*args, out_t_s, out_t_e, out_ri])
+    launch(_compact, packed_info.shape[0], t_starts, [*args, *outs])
 
 
 def prune_samples(
@@ -153,7 +157,8 @@ def prune_samples(
     t_ends: torch.Tensor,
     early_stop_eps: float = 1e-4,
     alpha_threshold: float = 0.0,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    return_src: bool = False,
+) -> tuple[torch.Tensor, ...]:
     """The visible samples of packed rays, packed again (see module doc; no gradients).
 
     Args:
@@ -165,10 +170,12 @@ def prune_samples(
         early_stop_eps: drop samples whose incoming transmittance T is below it, in [0, 1]
             (0: none on this ground).
         alpha_threshold: drop samples whose alpha is below it, in [0, 1] (0: none).
+        return_src: also return src (S',) int32, each kept sample's input slot (what was
+            computed for the input's samples, gathered by it, is the kept samples').
     Returns:
         packed_info (R, 2) int32, t_starts (S',) float32, t_ends (S',) float32, ray_indices
-        (S',) int32: `march_rays`' layout. S' is read back from the device (one host sync):
-        `prune_samples_fixed` avoids it.
+        (S',) int32: `march_rays`' layout; then src with return_src. S' is read back from the
+        device (one host sync): `prune_samples_fixed` avoids it.
     """
     sigmas, packed_info, t_starts, t_ends = _inputs(
         sigmas, packed_info, t_starts, t_ends, early_stop_eps, alpha_threshold
@@ -183,9 +190,12 @@ def prune_samples(
     out_t_s = torch.empty(S, dtype=torch.float32, device=dev)
     out_t_e = torch.empty(S, dtype=torch.float32, device=dev)
     out_ri = torch.empty(S, dtype=torch.int32, device=dev)
+    src = torch.empty(S, dtype=torch.int32, device=dev)
     if S > 0:
-        _compact_pass(keep, t_starts, t_ends, packed_info, out_info, out_t_s, out_t_e, out_ri)
-    return out_info, out_t_s, out_t_e, out_ri
+        _compact_pass(
+            keep, t_starts, t_ends, packed_info, out_info, (out_t_s, out_t_e, out_ri, src)
+        )
+    return (out_info, out_t_s, out_t_e, out_ri) + ((src,) if return_src else ())
 
 
 def prune_samples_fixed(
@@ -198,7 +208,8 @@ def prune_samples_fixed(
     *,
     capacity: int,
     out: FixedSamples | None = None,
-) -> FixedSamples:
+    return_src: bool = False,
+) -> FixedSamples | tuple[FixedSamples, torch.Tensor]:
     """`prune_samples` into buffers of `capacity` samples, with no host sync.
 
     Args: as `prune_samples`, plus
@@ -206,11 +217,12 @@ def prune_samples_fixed(
             that a CUDA graph can replay the call).
         out: buffers from `empty_fixed_samples(R, capacity, device)` to write into (reused
             across steps; not the input's own buffers), or None to allocate them.
+        return_src: also return src (capacity,) int32, each slot's input slot (padding: 0).
     Returns:
         FixedSamples as `march_rays_fixed`'s: a ray whose kept slice would end past
         `capacity` gets count 0 and overflow True; n_used (1,) int32 slots written, n_wanted
         (1,) int32 samples kept over all rays; slots [n_used, capacity) are padding
-        (t_start = t_end = 0, ray 0).
+        (t_start = t_end = 0, ray 0). With return_src, (that, src).
     """
     sigmas, packed_info, t_starts, t_ends = _inputs(
         sigmas, packed_info, t_starts, t_ends, early_stop_eps, alpha_threshold
@@ -220,6 +232,7 @@ def prune_samples_fixed(
         out = empty_fixed_samples(R, capacity, dev)
     else:
         check_fixed_out(out, R, capacity, dev)
+    src = torch.zeros(capacity, dtype=torch.int32, device=dev)  # padding reads slot 0
     if R == 0:
         out.n_used.zero_()
         out.n_wanted.zero_()
@@ -232,15 +245,7 @@ def prune_samples_fixed(
         args = [csum, counts, 1, capacity, fast_view(out.packed_info, wp.vec2i)]
         args += [fast_view(scratch, wp.vec2i), out.overflow, out.n_used, out.n_wanted]
         launch(reserve_slices, R, sigmas, args)
-        _compact_pass(
-            keep,
-            t_starts,
-            t_ends,
-            packed_info,
-            out.packed_info,
-            out.t_starts,
-            out.t_ends,
-            out.ray_indices,
-        )
+        outs = (out.t_starts, out.t_ends, out.ray_indices, src)
+        _compact_pass(keep, t_starts, t_ends, packed_info, out.packed_info, outs)
     launch(pad_tail, capacity, sigmas, [out.n_used, out.t_starts, out.t_ends, out.ray_indices])
-    return out
+    return (out, src) if return_src else out

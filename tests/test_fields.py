@@ -666,6 +666,53 @@ def test_ngp_compacted_samples_train_as_all_marched_ones(make, monkeypatch):
     assert f.pruned_capacity is None and "n_marched" not in _train_render(f, o, d)[0]
 
 
+@pytest.mark.parametrize(
+    "fixed, weights, bf16",
+    [(False, None, False), (True, None, True), (True, "field", False), (False, "gradient", True)],
+)
+def test_ngp_compacted_samples_reuse_the_prunes_encoding(make, monkeypatch, fixed, weights, bf16):
+    """The kept samples' features are gathered from the prune's density pass, which encoded
+    every marched sample already: the hash grid runs forward once a compacted training
+    render, and the render, loss and every gradient are those of encoding the kept samples
+    anew, bit for bit (exactly sized buffers and fixed ones, the rays' gradients included;
+    coarse-to-fine's weights on the features or on the pose gradient; bf16 features under
+    bf16 autocast)."""
+    o, d = hit_rays(24)
+    calls = []
+    encode = ngp_mod.hash_grid_encode
+
+    def counted(*a, **kw):
+        calls.append(kw.get("from_rows") is None)
+        return encode(*a, **kw)
+
+    monkeypatch.setattr(ngp_mod, "hash_grid_encode", counted)
+    runs = []
+    for reuse in (True, False):
+        f = make("ngp", early_stop_eps=1e-4, density_bias=3.0, bf16_features=bf16)
+        f.use_fixed_capacity(fixed)
+        if weights is not None:
+            f.level_weights = torch.linspace(1.0, 0.0, f.grid_cfg.n_levels)
+            f.level_weights_mode = weights
+        _train_render(f, o, d)  # sizes the fixed buffers
+        if not reuse:  # the kept samples encoded anew
+            monkeypatch.setattr(
+                ngp_mod,
+                "hash_grid_encode",
+                lambda *a, **kw: counted(*a, **{**kw, "from_rows": None}),
+            )
+        calls.clear()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            runs.append((_train_render(f, o, d), calls.count(True)))
+    ((out, loss, g), encoded), ((ref, ref_loss, ref_g), ref_encoded) = runs
+    assert (encoded, ref_encoded) == (1, 2)
+    assert out["n_samples"] < out["n_marched"]
+    for k in ("rgb", "depth", "opacity"):
+        assert torch.equal(out[k], ref[k]), k
+    assert torch.equal(loss, ref_loss)
+    for k, v in g.items():
+        assert torch.equal(v, ref_g[k]), k
+
+
 def _detached_render(f, o, d, keep, grad_rays, seed: int = 3):
     """`_train_render` with the rays outside `keep` detached, as pose refinement detaches a
     long window's; `grad_rays` goes to the field."""

@@ -429,3 +429,43 @@ def test_bfloat16_features_write_every_element():
 def test_rejects_a_feature_dtype_it_cannot_write():
     with pytest.raises(ValueError, match="out_dtype"):
         hash_grid_encode(torch.rand(4, 3), init_table(SMALL), SMALL, out_dtype=torch.float16)
+
+
+@pytest.mark.parametrize("variant", [_Variant(), _Variant(feature_major=False)], ids=["fm", "pm"])
+@pytest.mark.parametrize("dt", [torch.float32, torch.bfloat16])
+def test_from_rows_gathers_the_encoding_and_keeps_its_backward(variant, dt):
+    """from_rows (a prune's encoding of every marched sample, and the kept ones' rows): the
+    value is those rows, in the layout the encoder writes; the table's and x's gradients
+    are the encoder's own, bit for bit. Fails if the gather hands feature-major features
+    on row-major (the backward reads either; the layout is what the forward promises)."""
+    gen = torch.Generator().manual_seed(5)
+    every = ray_samples(9, 31, gen)
+    rows = torch.randperm(every.shape[0], generator=gen)[:150].sort().values.int()
+    table = (torch.rand(SMALL.n_params, SMALL.n_features, generator=gen) * 2 - 1).float()
+    with torch.no_grad():
+        seen = hash_grid_encode(every, table, SMALL, variant, out_dtype=dt)
+    g = torch.randn(len(rows), SMALL.n_output_dims, generator=gen).to(dt)
+    grads = []
+    for from_rows in (None, (seen, rows)):
+        xt = every[rows.long()].clone().requires_grad_()
+        tt = table.clone().requires_grad_()
+        out = hash_grid_encode(xt, tt, SMALL, variant, out_dtype=dt, from_rows=from_rows)
+        grads.append((out.detach(), *torch.autograd.grad((out * g).float().sum(), (xt, tt))))
+    (a, gxa, gta), (b, gxb, gtb) = grads
+    assert b.dtype == dt and torch.equal(a, b)
+    assert (b.stride(0) == 1) == variant.feature_major  # the encoder's layout
+    assert torch.equal(gta, gtb) and torch.equal(gxa, gxb) and gtb.abs().sum() > 0
+
+
+def test_from_rows_must_fit_the_points_and_the_encoding():
+    x, table = torch.rand(4, 3), init_table(SMALL)
+    feats = hash_grid_encode(torch.rand(10, 3), table, SMALL)
+    cases = [
+        ((feats, torch.arange(3)), "rows must be \\(4,\\)"),
+        ((feats, torch.arange(4).float()), "int32 or int64"),
+        ((feats[:, :4], torch.arange(4)), "features must be"),
+        ((feats.to(torch.bfloat16), torch.arange(4)), "features must be"),
+    ]
+    for from_rows, match in cases:
+        with pytest.raises(ValueError, match=match):
+            hash_grid_encode(x, table, SMALL, from_rows=from_rows)

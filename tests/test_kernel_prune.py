@@ -128,6 +128,29 @@ def test_fixed_equals_exact_when_it_fits(eps, thre):
         check_against_exact(f, ref, capacity)
 
 
+@pytest.mark.parametrize("as_fixed", [False, True])
+def test_src_is_each_kept_samples_input_slot(as_fixed):
+    """return_src: each kept slot's input slot (a fixed buffer's padding reads slot 0), so
+    what was computed for the input's samples, gathered by it, is the kept samples'."""
+    sig, t_s, t_e, pi = _as_fixed_input(*_case(1e-3, 0.0), cut=40, pad=11)
+    keep, _ = ref_keep(sig, t_s, t_e, pi, 1e-3, 0.0)
+    _, idx, _ = expected(pi, keep)
+    if not as_fixed:
+        *out, src = prune_samples(sig, pi, t_s, t_e, 1e-3, return_src=True)
+        assert torch.equal(src.long(), idx) and src.dtype == torch.int32
+        assert torch.equal(out[1], t_s[src.long()])
+        return
+    S = idx.numel()
+    f, src = prune_samples_fixed(sig, pi, t_s, t_e, 1e-3, capacity=S + 9, return_src=True)
+    assert src.shape == (S + 9,) and torch.equal(src[:S].long(), idx)
+    assert not src[S:].any()  # padding
+    # a ray that does not fit writes no slots, so no rows of src either
+    f, src = prune_samples_fixed(sig, pi, t_s, t_e, 1e-3, capacity=S // 2, return_src=True)
+    used = int(f.n_used)
+    assert f.overflow.any() and torch.equal(f.t_starts[:used], t_s[src[:used].long()])
+    assert torch.equal(f.t_ends[:used], t_e[src[:used].long()]) and not src[used:].any()
+
+
 def test_overflow_flags_exactly_the_rays_that_do_not_fit():
     sig, t_s, t_e, pi = _case(1e-3, 0.0)
     ref = prune_samples(sig, pi, t_s, t_e, 1e-3)

@@ -214,29 +214,42 @@ class NGPField(Field):
         return u.clamp(0.0, 1.0).contiguous()
 
     def _geometry(
-        self, x: torch.Tensor, x_grad_mask: torch.Tensor | None = None
+        self, x: torch.Tensor, x_grad_mask: torch.Tensor | None = None, from_rows=None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """σ (N,) float32 and h (N, 1 + geo_features), the density MLP's output in its dtype (σ's
         logit first, then the geometry features the colour MLP reads), at world points x (N, 3);
         x_grad_mask: optional (N,) bool, the points whose gradient w.r.t. x is read (the
-        others get none: `hash_grid_encode`)."""
-        xn, w, cfg = self._normalise(_cast(x, torch.float32)), None, self.grid_cfg
-        table = _cast(self.table, torch.float32)
-        if self.level_weights is not None:
-            # expand, not repeat_interleave: nothing a captured step could wait on
-            w = self.level_weights[:, None].expand(-1, cfg.n_features).reshape(-1)
-        # coarse-to-fine on the pose gradient only (fields/level_weights.py) weights the
-        # x-gradient in the encoding's backward (one forward); on the values, the features
-        on_grad = w is not None and self.level_weights_mode == "gradient"
-        on_values = w is not None and not on_grad
-        feats = hash_grid_encode(
+        others get none: `hash_grid_encode`); from_rows: optional (`_encode`'s features of a
+        superset of x's points, each point's row in them), gathered instead of encoded."""
+        return self._density_head(x, self._encode(x, x_grad_mask, from_rows))
+
+    def _level_weights(self) -> tuple[torch.Tensor | None, bool]:
+        """Coarse-to-fine's weights of the encoding's columns (L*F,) or None, and whether they
+        weight the features' values (else only the pose gradient, in the backward)."""
+        if self.level_weights is None:
+            return None, False
+        # expand, not repeat_interleave: nothing a captured step could wait on
+        w = self.level_weights[:, None].expand(-1, self.grid_cfg.n_features).reshape(-1)
+        return w, self.level_weights_mode != "gradient"
+
+    def _encode(self, x, x_grad_mask=None, from_rows=None) -> torch.Tensor:
+        """The hash grid's features (N, L*F) at world points x (N, 3), unweighted, in
+        `_features_dtype` (float32 where coarse-to-fine weights their values)."""
+        xn, cfg = self._normalise(_cast(x, torch.float32)), self.grid_cfg
+        w, on_values = self._level_weights()
+        return hash_grid_encode(
             xn,
-            table,
+            _cast(self.table, torch.float32),
             cfg,
-            x_grad_weights=w.float() if on_grad else None,
+            x_grad_weights=w.float() if w is not None and not on_values else None,
             x_grad_mask=x_grad_mask,
             out_dtype=torch.float32 if on_values else self._features_dtype(xn),
+            from_rows=from_rows,
         )
+
+    def _density_head(self, x: torch.Tensor, feats: torch.Tensor):
+        """`_geometry`'s (σ, h) from the points x (N, 3) and their `_encode` features."""
+        w, on_values = self._level_weights()
         feats = feats * w if on_values else feats
         if feats.dtype == torch.float32:
             feats = _cast(feats, self.density_net[0].weight.dtype)
@@ -294,10 +307,10 @@ class NGPField(Field):
             rays_o, rays_d, bad = park_non_finite(rays_o, rays_d)
         with torch.no_grad(), record_function("march"):
             marched = self.sampler.march(rays_o, rays_d, near, train)
-        samples = marched
+        samples, from_rows = marched, None
         if train and self.sampler.prunes():
             with torch.no_grad(), record_function("prune"):
-                samples = self.sampler.prune(rays_o, rays_d, marched, self._sigma)
+                samples, from_rows = self._prune(rays_o, rays_d, marched)
         packed_info, t_starts, t_ends, ray_idx = samples[:4]
         with record_function("field"):
             # per-ray backward: the rays are learnt under pose refinement (kernels/ray_points)
@@ -305,7 +318,7 @@ class NGPField(Field):
             keep = None  # the samples whose position gradient is read (the encoding's mask)
             if grad_rays is not None and x.requires_grad:
                 keep = grad_rays.index_select(0, ray_idx)
-            sigma, h = self._geometry(x, keep)
+            sigma, h = self._geometry(x, keep, from_rows)
             rgb = self._radiance(h, d)
         with record_function("composite"):
             out = composite(sigma, rgb, t_starts, t_ends, packed_info, ray_idx, background)
@@ -330,6 +343,19 @@ class NGPField(Field):
                 out["weights"], t_starts, t_ends, packed_info, layout=layout
             ).mean()
         return res
+
+    def _prune(self, rays_o, rays_d, marched):
+        """The marched samples a training step trains on (the sampler's prune), and what their
+        encoding is gathered from: (the marched samples' features, the kept slots' rows),
+        the prune's density pass having encoded every marched sample already."""
+        seen = []
+
+        def density(x):
+            seen.append(self._encode(x))
+            return self._density_head(x, seen[-1])[0]
+
+        samples, src = self.sampler.prune(rays_o, rays_d, marched, density, with_src=True)
+        return samples, (seen[-1], src)
 
     def graph_key(self) -> tuple | None:
         """Capturable while training marches into fixed buffers: (capacities, cone, level

@@ -190,9 +190,10 @@ class OccupancySampler:
         with `compaction_auto`, while the switch says it pays)."""
         return self._compaction_set() and (self.compaction is None or self.compaction.on)
 
-    def prune(self, rays_o, rays_d, marched, density: SigmaFn):
+    def prune(self, rays_o, rays_d, marched, density: SigmaFn, with_src: bool = False):
         """The marched samples a training step trains on: those still visible by the density
-        alone (kernels/prune.py), exactly sized or a FixedSamples as `marched` is."""
+        alone (kernels/prune.py), exactly sized or a FixedSamples as `marched` is; with_src,
+        (those, src): each kept slot's marched slot, (S',) int32."""
         opt = self.options.marcher
         packed_info, t_starts, t_ends, ray_idx = marched[:4]
         x, _ = ray_points(rays_o, rays_d, 0.5 * (t_starts + t_ends), ray_idx, packed_info)
@@ -201,7 +202,8 @@ class OccupancySampler:
         if self.hidden is not None:
             self.hidden.tally(x, sigma, packed_info, t_starts, t_ends, opt.early_stop_eps)
         if not isinstance(marched, FixedSamples):
-            return prune_samples(*args)
+            out = prune_samples(*args, return_src=with_src)
+            return (out[:4], out[4]) if with_src else out
         cap = self.pruned_capacity
         if cap.capacity is None:  # first batch: size it once, exactly
             cap.reset(len(prune_samples(*args)[1]))
@@ -209,9 +211,12 @@ class OccupancySampler:
         if self._pruned_out is None or self._pruned_key != key:
             self._pruned_out = empty_fixed_samples(len(rays_o), cap.capacity, rays_o.device)
             self._pruned_key = key
-        pruned = prune_samples_fixed(*args, capacity=cap.capacity, out=self._pruned_out)
+        out = prune_samples_fixed(
+            *args, capacity=cap.capacity, out=self._pruned_out, return_src=with_src
+        )
+        pruned = out[0] if with_src else out
         cap.observe(pruned.n_wanted)
-        return pruned
+        return out
 
     # -- occupancy -----------------------------------------------------------------------
     def update(self, step: int, density: SigmaFn) -> None:
