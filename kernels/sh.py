@@ -56,8 +56,12 @@ def _sh_kernels(bf16: bool):
     ft = features_dtype(bf16)
 
     @wp.func
-    def load(g: wp.array2d(dtype=ft), i: int, k: int) -> float:
-        return wp.float32(g[i, k])
+    def load_row(g: wp.array2d(dtype=ft), i: int) -> VEC16:
+        """Row i of the (N, 16) gradient, as float32."""
+        row = VEC16()
+        for k in range(N_COEFFS):
+            row[k] = wp.float32(g[i, k])
+        return row
 
     @wp.kernel(enable_backward=False, module="unique")
     def sh_forward(d: wp.array(dtype=wp.vec3), out: wp.array2d(dtype=ft)):
@@ -91,27 +95,10 @@ def _sh_kernels(bf16: bool):
         c5 = 2.8906114426405538
         c6 = 0.45704579946446572
         c7 = 1.4453057213202769
-        g1, g2, g3, g4, g5 = (
-            load(g, i, 1),
-            load(g, i, 2),
-            load(g, i, 3),
-            load(g, i, 4),
-            load(g, i, 5),
-        )
-        g6, g7, g8, g9, g10 = (
-            load(g, i, 6),
-            load(g, i, 7),
-            load(g, i, 8),
-            load(g, i, 9),
-            load(g, i, 10),
-        )
-        g11, g12, g13, g14, g15 = (
-            load(g, i, 11),
-            load(g, i, 12),
-            load(g, i, 13),
-            load(g, i, 14),
-            load(g, i, 15),
-        )
+        gv = load_row(g, i)
+        g1, g2, g3, g4, g5 = gv[1], gv[2], gv[3], gv[4], gv[5]
+        g6, g7, g8, g9, g10 = gv[6], gv[7], gv[8], gv[9], gv[10]
+        g11, g12, g13, g14, g15 = gv[11], gv[12], gv[13], gv[14], gv[15]
         dx = (
             -c1 * g3
             + c2 * (y * g4 - z * g7)
