@@ -15,6 +15,7 @@ from .common import FEATURE_DTYPES, fast_view, features_dtype, init, launch
 init()
 
 N_COEFFS = 16
+BF16_GROUP = 4  # bf16 forward: consecutive coefficients a thread writes
 
 
 VEC16 = wp.types.vector(length=N_COEFFS, dtype=wp.float32)
@@ -50,9 +51,11 @@ def sh_basis(v: wp.vec3) -> VEC16:
 def _sh_kernels(bf16: bool):
     """(forward, backward) kernels. float32: one thread a direction, the basis written
     feature-major, (16, N) storage handed on transposed; bf16 (`sh_encode`'s out_dtype):
-    written row-major, (N, 16), one thread a coefficient (a thread writing a whole 32-byte row
-    leaves a warp's stores 32 bytes apart), each value rounded to nearest even, and the
-    gradient read as bf16. The arithmetic is float32."""
+    written row-major, (N, 16), one thread per four consecutive coefficients (a thread's four
+    2-byte stores are contiguous, so a warp's stores cover 256 contiguous bytes, where a thread
+    writing a whole 32-byte row would leave them 32 bytes apart; and the basis is computed 4x
+    a direction rather than 16x as with one thread a coefficient), each value rounded to
+    nearest even, and the gradient read as bf16. The arithmetic is float32."""
     ft = features_dtype(bf16)
 
     @wp.func
@@ -67,14 +70,22 @@ def _sh_kernels(bf16: bool):
     def sh_forward(d: wp.array(dtype=wp.vec3), out: wp.array2d(dtype=ft)):
         t = wp.tid()
         if wp.static(bf16):
-            i = t // N_COEFFS
-            k = t - i * N_COEFFS
+            i = t // BF16_GROUP
+            q = t - i * BF16_GROUP
             b = sh_basis(d[i])
-            v = 0.0
-            for j in range(N_COEFFS):  # constant indices: the basis stays in registers
-                if j == k:
-                    v = b[j]
-            out[i, k] = ft(v)
+            # constant indices only: the basis stays in registers
+            v0, v1, v2, v3 = b[0], b[1], b[2], b[3]
+            if q == 1:
+                v0, v1, v2, v3 = b[4], b[5], b[6], b[7]
+            if q == 2:
+                v0, v1, v2, v3 = b[8], b[9], b[10], b[11]
+            if q == 3:
+                v0, v1, v2, v3 = b[12], b[13], b[14], b[15]
+            k = q * BF16_GROUP
+            out[i, k + 0] = ft(v0)
+            out[i, k + 1] = ft(v1)
+            out[i, k + 2] = ft(v2)
+            out[i, k + 3] = ft(v3)
         else:
             b = sh_basis(d[t])
             for k in range(N_COEFFS):
@@ -143,7 +154,7 @@ class _SHEncode(torch.autograd.Function):
             fwd, _ = _sh_kernels(bf16)
             launch(
                 fwd,
-                d.shape[0] * (N_COEFFS if bf16 else 1),
+                d.shape[0] * (N_COEFFS // BF16_GROUP if bf16 else 1),
                 d,
                 [fast_view(d, wp.vec3), fast_view(storage)],
             )

@@ -81,3 +81,14 @@ def test_bfloat16_basis_is_the_float32_one_rounded_and_reads_a_bfloat16_gradient
     with pytest.raises(ValueError, match="out_dtype"):
         sh_encode(d, out_dtype=torch.float16)
     assert sh_encode(torch.zeros(0, 3), out_dtype=torch.bfloat16).shape == (0, 16)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5, 301, 512])
+def test_bfloat16_forward_every_row_and_group_for_any_count(n):
+    """The bf16 forward runs a thread per (direction, 4 coefficients): every entry of every
+    row, for N not a multiple of 4 too, is bit for bit the float32 basis rounded."""
+    gen = torch.Generator().manual_seed(n)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen), dim=1)
+    b = sh_encode(d, out_dtype=torch.bfloat16)
+    assert b.shape == (n, 16) and b.is_contiguous()
+    assert torch.equal(b, sh_encode(d).to(torch.bfloat16))
