@@ -358,11 +358,16 @@ def test_ngp_update_only_every_update_every_steps(make, monkeypatch):
     assert f.grid.threshold.item() >= 0  # real updates ran (the initial threshold is -0.5)
 
 
-def test_ngp_fused_relu_renders_and_trains_as_the_plain_field(make):
-    """fused_relu (each hidden ReLU in its GEMM) is how the MLPs run, not what they are: the
-    same parameters render the same colours and depths with the same gradients (within what
-    the plain field differs from itself by), and the option is in the field's saved config."""
-    plain, fused, again = (make("ngp", fused_relu=f) for f in (False, True, False))
+@pytest.mark.parametrize("option", [{"fused_relu": True}, {"fused_relu": True, "relu_mask": True}])
+def test_ngp_fused_relu_renders_and_trains_as_the_plain_field(make, option):
+    """fused_relu (each hidden ReLU in its GEMM), with or without relu_mask (the ReLU masks
+    applied in the backward's GEMMs), is how the MLPs run, not what they are: the same
+    parameters render the same colours and depths with the same gradients (within what the
+    plain field differs from itself by), and the options are in the field's saved config."""
+    plain, fused, again = (make("ngp", **o) for o in ({}, option, {}))
+    for k, v in option.items():
+        assert fused.config_dict()["options"]["network"][k] is v
+        assert getattr(fused.color_net, k) is v and getattr(fused.density_net, k) is v
     fused.load_state_dict(plain.state_dict())
     assert fused.config_dict()["options"]["network"]["fused_relu"] is True
     assert fused.density_net.fused_relu and fused.color_net.fused_relu
