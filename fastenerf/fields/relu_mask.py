@@ -135,10 +135,10 @@ class _Plan:
     with a ReLU-mask epilogue; the mask's pointer is set at each call."""
 
     def __init__(self, index: int, dtype: int, m: int, n: int, k: int, ldb: int, forward: bool):
-        lib, (handle, workspace) = _lib(), _device_state(index)
-        self.lib, self.handle, self.workspace = lib, handle, workspace
         self.desc = ctypes.c_void_p()
         self.layouts = [ctypes.c_void_p() for _ in range(3)]
+        lib, (handle, workspace) = _lib(), _device_state(index)
+        self.lib, self.handle, self.workspace = lib, handle, workspace
         self.bias = None
         _check(lib.cublasLtMatmulDescCreate(ctypes.byref(self.desc), _COMPUTE_32F, _R_32F), "desc")
         a_rows, a_cols = (k, m) if forward else (m, k)
@@ -223,10 +223,14 @@ class _Plan:
         _check(status, "matmul")
 
     def __del__(self):
-        lib = self.lib
-        for layout in self.layouts:
-            lib.cublasLtMatrixLayoutDestroy(layout)
-        lib.cublasLtMatmulDescDestroy(self.desc)
+        try:  # a plan whose making failed part way, or one outliving the library at exit
+            for layout in self.layouts:
+                if layout.value:
+                    self.lib.cublasLtMatrixLayoutDestroy(layout)
+            if self.desc.value:
+                self.lib.cublasLtMatmulDescDestroy(self.desc)
+        except Exception:
+            pass
 
 
 _PLANS: OrderedDict[tuple, _Plan | None] = OrderedDict()
@@ -237,8 +241,11 @@ def _plan(key: tuple) -> _Plan | None:
     """The cached plan of key (device, dtype, m, n, k, ldb, forward), None where cuBLASLt has
     no algorithm for it."""
     if key not in _PLANS:
-        plan = _Plan(*key)
-        _PLANS[key] = plan if plan.algo is not None else None
+        try:
+            plan = _Plan(*key)
+        except RuntimeError:  # a status cuBLASLt refuses the descriptors with: the fallback
+            plan = None
+        _PLANS[key] = plan if plan is not None and plan.algo is not None else None
         while len(_PLANS) > _MAX_PLANS:
             _PLANS.popitem(last=False)
     _PLANS.move_to_end(key)
