@@ -72,6 +72,18 @@ def test_masked_relu_mlp_skips_the_gradients_nobody_asked_for():
     assert all(g is not None for g in gw)
 
 
+def test_operands_are_read_in_place_row_or_column_major():
+    """Rows, rows of a wider buffer and a transposed (feature-major) view go to cuBLAS as they
+    are; anything else is copied into rows."""
+    buf = torch.randn(64, 48)
+    for t, ld, trans in [(buf, 48, False), (buf[:, :32], 48, False), (buf.t(), 48, True)]:
+        got, got_ld, got_trans = rm._operand(t)
+        assert got.data_ptr() == t.data_ptr() and (got_ld, got_trans) == (ld, trans)
+    odd = buf[::2, ::2]
+    got, ld, trans = rm._operand(odd)
+    assert got.is_contiguous() and (ld, trans) == (24, False) and torch.equal(got, odd)
+
+
 @pytest.mark.parametrize("geo", [15, 10])
 def test_relu_mask_mlps_are_the_fused_ones(geo):
     """`relu_mask` changes how the backward applies the ReLUs, not the networks: the same
@@ -134,6 +146,10 @@ def test_cublaslt_epilogues_are_the_torch_ops(n):
     want = (g @ ws[1].detach()).masked_fill_(~(y > 0), 0)
     torch.testing.assert_close(got, want, rtol=1e-2, atol=1e-2)
     assert all(p is not None for p in rm._PLANS.values())
+    xt = x.detach().t().contiguous().t()  # feature-major, as the hash grid writes it
+    yt, mt = rm.linear_relu_mask(xt, ws[0].detach())
+    torch.testing.assert_close(yt, ref, rtol=1e-2, atol=1e-2)
+    assert torch.equal(mt, rm.pack_mask(yt))
     out = rm.masked_relu_mlp(x, ws)
     ref = _reference(x.double(), [w.double() for w in ws])
     torch.testing.assert_close(out.double(), ref, rtol=3e-2, atol=3e-2)

@@ -131,10 +131,13 @@ def _device_state(index: int) -> tuple[ctypes.c_void_p, torch.Tensor]:
 
 
 class _Plan:
-    """One GEMM's descriptors and algorithm: D (m, n) = op(A) (m, k) · B (k, n), column-major,
-    with a ReLU-mask epilogue; the mask's pointer is set at each call."""
+    """One GEMM's descriptors and algorithm: D (m, n) = op(A) (m, k) · op(B) (k, n),
+    column-major, with a ReLU-mask epilogue; the mask's pointer is set at each call. B is
+    read transposed where `trans_b` (a feature-major input: torch's transposed view)."""
 
-    def __init__(self, index: int, dtype: int, m: int, n: int, k: int, ldb: int, forward: bool):
+    def __init__(
+        self, index: int, dtype: int, m: int, n: int, k: int, ldb: int, trans_b: bool, forward: bool
+    ):
         self.desc = ctypes.c_void_p()
         self.layouts = [ctypes.c_void_p() for _ in range(3)]
         lib, (handle, workspace) = _lib(), _device_state(index)
@@ -143,7 +146,9 @@ class _Plan:
         _check(lib.cublasLtMatmulDescCreate(ctypes.byref(self.desc), _COMPUTE_32F, _R_32F), "desc")
         a_rows, a_cols = (k, m) if forward else (m, k)
         for layout, (rows, cols, ld) in zip(
-            self.layouts, [(a_rows, a_cols, a_rows), (k, n, ldb), (m, n, m)], strict=True
+            self.layouts,
+            [(a_rows, a_cols, a_rows), (n, k, ldb) if trans_b else (k, n, ldb), (m, n, m)],
+            strict=True,
         ):
             _check(
                 lib.cublasLtMatrixLayoutCreate(ctypes.byref(layout), dtype, rows, cols, ld),
@@ -151,7 +156,7 @@ class _Plan:
             )
         setd = lib.cublasLtMatmulDescSetAttribute
         _set(setd, self.desc, _DESC_TRANSA, ctypes.c_int32(_OP_T if forward else _OP_N))
-        _set(setd, self.desc, _DESC_TRANSB, ctypes.c_int32(_OP_N))
+        _set(setd, self.desc, _DESC_TRANSB, ctypes.c_int32(_OP_T if trans_b else _OP_N))
         _set(setd, self.desc, _DESC_AUX_LD, ctypes.c_int64(mask_bytes(m) * 8))
         # the heuristics read the pointers' alignment: the workspace stands in for them
         self.set_mask(workspace.data_ptr())
@@ -238,8 +243,8 @@ _MAX_PLANS = 64  # eager steps' sample counts vary; a captured step's stay fixed
 
 
 def _plan(key: tuple) -> _Plan | None:
-    """The cached plan of key (device, dtype, m, n, k, ldb, forward), None where cuBLASLt has
-    no algorithm for it."""
+    """The cached plan of key (device, dtype, m, n, k, ldb, trans_b, forward), None where
+    cuBLASLt has no algorithm for it."""
     if key not in _PLANS:
         try:
             plan = _Plan(*key)
@@ -257,27 +262,34 @@ def available(device: torch.device, dtype: torch.dtype) -> bool:
     return device.type == "cuda" and dtype in _DTYPES and _lib() is not None
 
 
-def _rows(t: torch.Tensor) -> tuple[torch.Tensor, int]:
-    """t (N, C) with unit column stride and an aligned start, and its row stride."""
-    if t.stride(1) != 1 or t.stride(0) < t.shape[1] or t.data_ptr() % _POINTER_ALIGN:
-        t = t.contiguous()
-    return t, max(t.stride(0), t.shape[1])
+def _operand(t: torch.Tensor) -> tuple[torch.Tensor, int, bool]:
+    """t (N, C) as cuBLAS reads it: (t, leading dimension, whether it is column-major), t
+    row-major (unit column stride) or a transposed view of (C, N) storage (the hash grid's
+    features), else copied into rows; an unaligned start is copied too."""
+    n, c = t.shape
+    if t.stride(1) == 1 and t.stride(0) >= max(c, 1) and t.data_ptr() % _POINTER_ALIGN == 0:
+        return t, t.stride(0), False
+    if t.stride(0) == 1 and t.stride(1) >= max(n, 1) and t.data_ptr() % _POINTER_ALIGN == 0:
+        return t, t.stride(1), True
+    return t.contiguous(), max(c, 1), False
 
 
-def _lt_plan(x: torch.Tensor, m: int, k: int, ldb: int, forward: bool) -> _Plan | None:
+def _lt_plan(
+    x: torch.Tensor, m: int, k: int, ldb: int, trans_b: bool, forward: bool
+) -> _Plan | None:
     if not available(x.device, x.dtype) or x.shape[0] == 0 or ldb % 8:
         return None
     index = x.device.index if x.device.index is not None else torch.cuda.current_device()
-    return _plan((index, _DTYPES[x.dtype], m, x.shape[0], k, ldb, forward))
+    return _plan((index, _DTYPES[x.dtype], m, x.shape[0], k, ldb, trans_b, forward))
 
 
 def linear_relu_mask(x: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """relu(x @ wᵀ) and its bit mask: x (N, in), w (out, in) of one dtype -> ((N, out),
     (N, mask_bytes(out)) uint8), in one cuBLASLt GEMM where it can (RELU_AUX)."""
-    x, ldx = _rows(x)
+    x, ldx, trans = _operand(x)
     w = w.contiguous()
     out, k = w.shape
-    plan = _lt_plan(x, out, k, ldx, forward=True)
+    plan = _lt_plan(x, out, k, ldx, trans, forward=True)
     if plan is None:
         y = torch.relu(x @ w.t())
         return y, pack_mask(y)
@@ -291,10 +303,10 @@ def masked_grad(g: torch.Tensor, w: torch.Tensor, mask: torch.Tensor) -> torch.T
     """(g @ w) ⊙ mask: g (N, out') the gradient of a layer's output, w (out', out) its weight,
     mask (N, mask_bytes(out)) the layer below's ReLU mask -> (N, out), the gradient of that
     layer's pre-activation, in one cuBLASLt GEMM where it can (DRELU)."""
-    g, ldg = _rows(g)
+    g, ldg, trans = _operand(g)
     w = w.contiguous()
     k, out = w.shape
-    plan = _lt_plan(g, out, k, ldg, forward=False)
+    plan = _lt_plan(g, out, k, ldg, trans, forward=False)
     if plan is None:
         return (g @ w).masked_fill_(~unpack_mask(mask, out), 0)
     d = torch.empty(g.shape[0], out, dtype=g.dtype, device=g.device)
