@@ -25,6 +25,7 @@ import torch
 
 MASK_ALIGN = 128  # bits: what cuBLASLt asks of a ReLU bit mask's leading dimension
 WORKSPACE_BYTES = 32 << 20
+BIAS_SCRATCH = 4096  # float32s: a DRELU_BGRAD bias gradient of up to this many outputs
 
 # cuBLASLt's enums (cublasLt.h, library_types.h)
 _R_32F, _R_16F, _R_16BF = 0, 2, 14
@@ -120,14 +121,17 @@ def _set(fn, obj, attr: int, value) -> None:
 
 
 @functools.cache
-def _device_state(index: int) -> tuple[ctypes.c_void_p, torch.Tensor]:
-    """(cuBLASLt handle, workspace) of CUDA device `index`."""
+def _device_state(index: int) -> tuple[ctypes.c_void_p, torch.Tensor, torch.Tensor]:
+    """(cuBLASLt handle, workspace, bias-gradient scratch) of CUDA device `index`: kept for
+    the process, since a captured graph's GEMMs write into them on every replay, whatever
+    became of the plan that captured them."""
     lib = _lib()
     handle = ctypes.c_void_p()
     with torch.cuda.device(index):
         _check(lib.cublasLtCreate(ctypes.byref(handle)), "create")
         workspace = torch.empty(WORKSPACE_BYTES, dtype=torch.uint8, device=f"cuda:{index}")
-    return handle, workspace
+        scratch = torch.empty(BIAS_SCRATCH, dtype=torch.float32, device=f"cuda:{index}")
+    return handle, workspace, scratch
 
 
 class _Plan:
@@ -140,9 +144,8 @@ class _Plan:
     ):
         self.desc = ctypes.c_void_p()
         self.layouts = [ctypes.c_void_p() for _ in range(3)]
-        lib, (handle, workspace) = _lib(), _device_state(index)
+        lib, (handle, workspace, scratch) = _lib(), _device_state(index)
         self.lib, self.handle, self.workspace = lib, handle, workspace
-        self.bias = None
         _check(lib.cublasLtMatmulDescCreate(ctypes.byref(self.desc), _COMPUTE_32F, _R_32F), "desc")
         a_rows, a_cols = (k, m) if forward else (m, k)
         for layout, (rows, cols, ld) in zip(
@@ -165,8 +168,9 @@ class _Plan:
         for epi in epilogues:
             _set(setd, self.desc, _DESC_EPILOGUE, ctypes.c_uint32(epi))
             if epi == _EPI_DRELU_BGRAD:  # a bias gradient nobody reads, where DRELU needs one
-                self.bias = torch.empty(m, dtype=torch.float32, device=workspace.device)
-                _set(setd, self.desc, _DESC_BIAS_POINTER, ctypes.c_void_p(self.bias.data_ptr()))
+                if m > BIAS_SCRATCH:
+                    break
+                _set(setd, self.desc, _DESC_BIAS_POINTER, ctypes.c_void_p(scratch.data_ptr()))
             self.algo = self._heuristic()
             if self.algo is not None:
                 break
