@@ -45,11 +45,12 @@ class NetworkOptions:
     CPU torch's `_addmm_activation` is an addmm and then a clamp, nothing saved. False: a
     GEMM, then a ReLU kernel, each module called as nn.Sequential would."""
     relu_mask: bool = False
-    """With fused_relu, each hidden ReLU's mask is also kept as bits (cuBLASLt's RELU_AUX
-    epilogue) and the backward applies it in the GEMM that makes the layer's gradient (DRELU;
-    fields/relu_mask.py), without a threshold pass over every sample's activations a hidden
-    layer. The same function and gradients; off the GPU (or where cuBLASLt has no algorithm
-    for a shape) torch ops apply the mask, slower than without it."""
+    """Where a backward will run, each hidden layer is one GEMM whose epilogue applies the
+    ReLU and keeps its mask as bits (cuBLASLt's RELU_AUX), and the backward applies the mask
+    in the GEMM that makes the layer's gradient (DRELU; fields/relu_mask.py), without a
+    threshold pass over every sample's activations a hidden layer (fused_relu's backward
+    has one). The same function and gradients; off the GPU (or where cuBLASLt has no
+    algorithm for a shape) torch ops apply the mask, slower than without it."""
     bf16_features: bool = False
     """Where the MLPs run under bf16 autocast (the GPU), the hash grid and the SH encoding
     write their features and read their gradient in bf16 (kernels/hashgrid.py, sh.py): the

@@ -89,8 +89,9 @@ def linear_relu(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 class MLP(nn.Sequential):
     """Linear (no bias) + ReLU layers and a linear output, run with each hidden layer's ReLU
-    fused into its GEMM when `fused_relu` (module docstring); the same parameters and state
-    dict either way."""
+    fused into its GEMM when `fused_relu`, and its mask kept as bits for the backward's GEMMs
+    when `relu_mask` and a backward will run (module docstring); the same parameters and
+    state dict either way."""
 
     def __init__(self, *layers: nn.Module, fused_relu: bool = False, relu_mask: bool = False):
         super().__init__(*layers)
@@ -101,7 +102,7 @@ class MLP(nn.Sequential):
         """The layers on x (N, in) -> (N, out); first_weight: the first layer's weight to use
         in its place (ColorMLP's masked one)."""
         layers = list(self)
-        if self.fused_relu and self.relu_mask and torch.is_grad_enabled() and _relu_chain(layers):
+        if self.relu_mask and torch.is_grad_enabled() and _relu_chain(layers):
             ws = [layer.weight for layer in layers[::2]]
             return _run_masked(x, [ws[0] if first_weight is None else first_weight, *ws[1:]])
         i = 0
