@@ -183,6 +183,11 @@ class TrainConfig:
     """Stop learning the poses once they settle (refine_settle_px): the corrections stay as
     they are and the rays leave the autograd graph, so the rest of the run no longer pays for
     the pose gradient (the hash grid's position gradient, the rays' backward)."""
+    refine_diffuse_until: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    """While refining poses, the colour ignores the view direction (the ngp colour MLP's
+    inputs past SH degree 0 masked) until this budget fraction, or until the poses settle
+    (refine_settle_px) where that comes first: views of a point that disagree through a
+    pose's error cannot be explained by view-dependent colour, only by the poses. 0: off."""
     settle_win_max: int | None = field(default=None, metadata={"min": 1, "max": 1_000_000})
     """The field's longest window once the poses settle (refine_settle_px), views. Default:
     the fast preset's long windows, FAST_WINDOW_FRACTION of the loop (at least win_max)."""
@@ -276,6 +281,11 @@ class TrainConfig:
         _check(ok, where, "refine_settle_px", "needs refine_poses (it watches the corrections)")
         ok = self.refine_poses or not self.refine_freeze
         _check(ok, where, "refine_freeze", "needs refine_poses (it stops the pose learning)")
+        ok = self.refine_poses or self.refine_diffuse_until == 0
+        _check(ok, where, "refine_diffuse_until", "needs refine_poses (it ends when they settle)")
+        ok = self.refine_diffuse_until == 0 or self.backend == "ngp"
+        why = "needs the ngp backend (it masks its colour MLP's SH inputs)"
+        _check(ok, where, "refine_diffuse_until", why)
         ok = self.settle_win_max is None or self.refine_settle_px is not None
         _check(ok, where, "settle_win_max", "needs refine_settle_px (when the windows lengthen)")
         k, shared = self.refine_knots, self.refine_shared or self.refine_shared_until > 0

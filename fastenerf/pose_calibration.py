@@ -142,14 +142,20 @@ class PoseCalibration:
         self.sharing = False  # the poses share one correction now (refine_shared_until)
         self.lr = 0.0  # this step's lr, on the host (the device may hold a copy)
         self.frozen = False  # the poses settled and refine_freeze stopped their learning
+        self.view_held = False  # the colour ignores the view direction (refine_diffuse_until)
 
     def schedule(self, progress: float) -> bool:
         """The lr and the shared phase at training `progress` in [0, 1]; returns whether the
         shared phase ended now (the caller then calls `forget_moments`). From the step after
-        the poses settled, refine_freeze holds the lr at 0 (`frozen`)."""
+        the poses settled, refine_freeze holds the lr at 0 (`frozen`); until they settle or
+        refine_diffuse_until, the colour ignores the view direction (`view_held`)."""
         settled = self.settle is not None and self.settle.settled_at is not None
         self.frozen = self.cfg.refine_freeze and settled
         self.lr = 0.0 if self.frozen else pose_lr(self.cfg, progress)
+        held = progress < self.cfg.refine_diffuse_until and not settled
+        if held != self.view_held:
+            self.field.color_net.hold_view(held)
+            self.view_held = held
         was = self.sharing
         self.sharing = progress < self.cfg.refine_shared_until
         return was and not self.sharing
@@ -255,6 +261,8 @@ class PoseCalibration:
             out.update(self.settle.stats())
         if self.cfg.refine_freeze:
             out["poses_frozen"] = float(self.frozen)
+        if self.cfg.refine_diffuse_until > 0:
+            out["view_held"] = float(self.view_held)
         return out
 
     def report(self) -> dict[str, Any]:

@@ -902,3 +902,58 @@ def test_shared_phase_moments_are_forgotten_at_the_switch(ball):
     first = pose_lr(tc, 0.0 + 0.1 * tc.refine_warmup)
     assert pose_lr(tc, 0.5) == 0.0
     assert pose_lr(tc, 0.5 + 0.05 * tc.refine_warmup) == pytest.approx(first, rel=1e-12)
+
+
+def ngp_tiny(**kw):
+    from fastenerf.config import train_preset
+    from tests.test_train import NGP_TINY
+
+    return train_preset("fast", "ngp", backend_options=dict(NGP_TINY), **{**TINY, **kw})
+
+
+@pytest.mark.parametrize("settle_px", [None, 1e3])
+def test_refine_diffuse_holds_the_view_direction_until_its_fraction_or_the_settle(
+    scene, tmp_path, settle_px
+):
+    """refine_diffuse_until: the colour MLP's weights on the SH inputs past degree 0 are
+    masked (and so unchanged by training) until the budget fraction, or until the poses
+    settle where that comes first (here the second look, 0.05 of 40 steps); then they learn
+    again. The stats say which."""
+    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, steps=40)
+    cfg.update(perturb=PerturbConfig(pose_error_deg=1.0), refine_diffuse_until=0.1)
+    tr = Trainer(scene, ngp_tiny(**cfg, refine_settle_px=settle_px), tmp_path / "r")
+    net = tr.field.color_net
+    sh = slice(net.n_h + 1, net.n_h + 16)
+    w0 = net[0].weight.detach().clone()
+    held = []
+    for _ in range(6):
+        tr.step()
+        held.append(bool((net.w_mask[0, sh] == 0).all()))
+        assert tr.selfcal.stats()["view_held"] == float(held[-1])  # the viewer's stats
+    release = 3 if settle_px is not None else 4  # the step after the settle's (2), else 0.1's
+    assert held == [True] * release + [False] * (6 - release)
+    assert net.w_mask[0, net.n_h] == 1  # degree 0, a constant, stays
+    w = net[0].weight.detach()
+    assert not torch.equal(w[:, sh], w0[:, sh]) and not torch.equal(
+        w[:, : net.n_h], w0[:, : net.n_h]
+    )
+
+
+def test_refine_diffuse_weights_do_not_move_while_held(scene, tmp_path):
+    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, steps=40)
+    tr = Trainer(scene, ngp_tiny(**cfg, refine_diffuse_until=1.0), tmp_path / "r")
+    net = tr.field.color_net
+    sh = slice(net.n_h + 1, net.n_h + 16)
+    w0 = net[0].weight.detach().clone()
+    for _ in range(3):
+        tr.step()
+    w = net[0].weight.detach()
+    assert torch.equal(w[:, sh], w0[:, sh]) and not torch.equal(w, w0)
+
+
+def test_refine_diffuse_needs_the_poses_refined_and_the_ngp_field():
+    with pytest.raises(InputError, match="'refine_diffuse_until' needs refine_poses"):
+        ngp_tiny(refine_diffuse_until=0.3).validate()
+    with pytest.raises(InputError, match="'refine_diffuse_until' needs the ngp backend"):
+        tiny(refine_poses=True, refine_diffuse_until=0.3).validate()
+    assert ngp_tiny(refine_poses=True, refine_diffuse_until=0.3).validate()

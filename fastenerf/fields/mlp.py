@@ -275,6 +275,13 @@ class ColorMLP(MLP):
         mask[0, 0] = 0.0
         self.register_buffer("w_mask", mask, persistent=False)
 
+    @torch.no_grad()
+    def hold_view(self, on: bool) -> None:
+        """Mask (on) or unmask the first layer's weights on the SH inputs past degree 0 (a
+        constant): a colour that ignores the view direction, those weights getting no
+        gradient meanwhile. In place: a captured step reads the mask as it is."""
+        self.w_mask[0, self.n_h + 1 : self.n_h + N_SH] = 0.0 if on else 1.0
+
     def _pad_in(self, w: torch.Tensor) -> torch.Tensor:
         """(hidden, geo + 16) first-layer weights -> (hidden, aligned): a zero column for the
         σ logit in front, zero columns for the padding behind."""
