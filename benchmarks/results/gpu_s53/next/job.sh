@@ -9,7 +9,8 @@
 #    trace read by trace_gaps;
 # 2. runs.txt: 60 s runs with relu_mask on every scene, and the default on the mesh scene
 #    beside it (#17's step);
-# 3. runs_rf.txt: #20 at 1° with the default refinement (no freeze), every scene.
+# 3. runs_20.txt: #20 at 1° with the default refinement (no freeze), every scene, and at 2°
+#    with the freeze and refine_diffuse_until (new) on lattice, the mesh scene and shiny.
 # Everything lands in RES/s54 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
 # scenes, BUDGET_S and WARMUP set, and the paths below: a CPU dry run.
 set -u
@@ -25,4 +26,4 @@ for s in toyset shiny blocks plant lattice; do
         --variant 'mask={"backend_options": {"relu_mask": true}}'
     for v in base mask; do gaps "prof_$s" $v; done
 done
-run_lists runs.txt runs_rf.txt
+run_lists runs.txt runs_20.txt
