@@ -269,6 +269,25 @@ def test_graph_body_takes_the_plain_paths_steps_through_refine_freeze(scene, tmp
     assert_same_tensor(want, got, "delta")
 
 
+def test_graph_body_takes_the_plain_paths_steps_through_refine_diffuse(scene, tmp_path):
+    """refine_diffuse_until on the graphed body: the colour's mask changes in place where
+    the hold ends (here at the settle), and the body's steps are the plain path's through it."""
+    kw = dict(steps=12, refine_poses=True, refine_start=0.0, refine_warmup=0.0)
+    kw.update(refine_settle_px=1e3, refine_diffuse_until=0.5)
+    plain = make(scene, tmp_path / "plain", "plain", **kw)
+    a = losses(plain, 12)
+    graph = make(scene, tmp_path / "graph", "graph", **kw)
+    held = []
+    for _ in range(12):
+        graph.step()
+        held.append(graph.selfcal.pose_cal.view_held)
+    graph.flush_stats()
+    assert_same_losses(a, [s["loss"] for s in graph.history])
+    assert held[0] and not held[-1]
+    net = graph.field.color_net
+    assert bool(net.w_mask[0, net.n_h :].all())  # the SH inputs back on
+
+
 def test_graph_body_takes_the_plain_paths_steps_through_a_batch_resize(
     scene, tmp_path, monkeypatch
 ):
