@@ -82,6 +82,12 @@ def test_operands_are_read_in_place_row_or_column_major():
     odd = buf[::2, ::2]
     got, ld, trans = rm._operand(odd)
     assert got.is_contiguous() and (ld, trans) == (24, False) and torch.equal(got, odd)
+    # feature-major storage of 61 samples: a leading dimension no aligned kernel reads
+    fm = torch.randn(32, 61).t()
+    got, ld, trans = rm._operand(fm)
+    assert got.is_contiguous() and (ld, trans) == (32, False) and torch.equal(got, fm)
+    got, ld, trans = rm._operand(torch.randn(32, 64).t())
+    assert (ld, trans) == (64, True)
 
 
 @pytest.mark.parametrize("geo", [15, 10])
@@ -129,7 +135,7 @@ def test_relu_mask_under_autocast_gives_float32_weight_gradients():
 
 
 @pytest.mark.skipif(not CUDA, reason="no CUDA: the epilogues are cuBLASLt's")
-@pytest.mark.parametrize("n", [4096, 1000, 1 << 17])
+@pytest.mark.parametrize("n", [4096, 1001, 1 << 17])
 def test_cublaslt_epilogues_are_the_torch_ops(n):
     """RELU_AUX's output and bits, DRELU's product, and the whole MLP's gradients on CUDA in
     bf16 are the torch ops' (bits exactly; values within bf16's rounding), and the GEMMs ran

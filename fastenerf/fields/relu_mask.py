@@ -269,19 +269,25 @@ def available(device: torch.device, dtype: torch.dtype) -> bool:
 def _operand(t: torch.Tensor) -> tuple[torch.Tensor, int, bool]:
     """t (N, C) as cuBLAS reads it: (t, leading dimension, whether it is column-major), t
     row-major (unit column stride) or a transposed view of (C, N) storage (the hash grid's
-    features), else copied into rows; an unaligned start is copied too."""
+    features), else copied into rows; so is a start or a leading dimension that is not 16
+    bytes aligned (a sample count not a multiple of 8 in feature-major storage), which the
+    plans' aligned kernels cannot read."""
     n, c = t.shape
-    if t.stride(1) == 1 and t.stride(0) >= max(c, 1) and t.data_ptr() % _POINTER_ALIGN == 0:
-        return t, t.stride(0), False
-    if t.stride(0) == 1 and t.stride(1) >= max(n, 1) and t.data_ptr() % _POINTER_ALIGN == 0:
-        return t, t.stride(1), True
+    step = _POINTER_ALIGN // t.element_size()
+    if t.data_ptr() % _POINTER_ALIGN == 0:
+        ld = t.stride(0)
+        if t.stride(1) == 1 and ld >= max(c, 1) and ld % step == 0:
+            return t, ld, False
+        ld = t.stride(1)
+        if t.stride(0) == 1 and ld >= max(n, 1) and ld % step == 0:
+            return t, ld, True
     return t.contiguous(), max(c, 1), False
 
 
 def _lt_plan(
     x: torch.Tensor, m: int, k: int, ldb: int, trans_b: bool, forward: bool
 ) -> _Plan | None:
-    if not available(x.device, x.dtype) or x.shape[0] == 0 or ldb % 8:
+    if not available(x.device, x.dtype) or x.shape[0] == 0 or ldb % (_POINTER_ALIGN // 2):
         return None
     index = x.device.index if x.device.index is not None else torch.cuda.current_device()
     return _plan((index, _DTYPES[x.dtype], m, x.shape[0], k, ldb, trans_b, forward))
