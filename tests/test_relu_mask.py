@@ -166,3 +166,13 @@ def test_cublaslt_epilogues_are_the_torch_ops(n):
         strict=True,
     ):
         assert (a.double() - b).norm() <= 2e-2 * b.norm() + 1e-3
+
+
+def test_without_cublaslt_a_gpu_mlp_keeps_the_fused_gemms(monkeypatch):
+    """Off CUDA the torch stand-ins run; on CUDA without cuBLASLt's library the masked MLP
+    is not used at all (its stand-ins would be slower than the fused GEMMs)."""
+    assert rm.usable(torch.device("cpu"))
+    monkeypatch.setattr(rm, "_lib", lambda: None)
+    assert not rm.usable(torch.device("cuda"))
+    assert not rm.available(torch.device("cuda"), torch.bfloat16)
+    assert rm.usable(torch.device("cpu"))

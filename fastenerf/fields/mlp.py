@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .relu_mask import masked_relu_mlp
+from .relu_mask import masked_relu_mlp, usable
 
 ALIGN = 8  # elements: 16 bytes of bf16, what cuBLAS's vectorised kernels need of a row
 N_SH = 16  # the degree-4 SH encoding's width
@@ -102,7 +102,8 @@ class MLP(nn.Sequential):
         """The layers on x (N, in) -> (N, out); first_weight: the first layer's weight to use
         in its place (ColorMLP's masked one)."""
         layers = list(self)
-        if self.relu_mask and torch.is_grad_enabled() and _relu_chain(layers):
+        masked = self.relu_mask and torch.is_grad_enabled() and usable(x.device)
+        if masked and _relu_chain(layers):
             ws = [layer.weight for layer in layers[::2]]
             return _run_masked(x, [ws[0] if first_weight is None else first_weight, *ws[1:]])
         i = 0

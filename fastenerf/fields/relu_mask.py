@@ -261,6 +261,12 @@ def _plan(key: tuple) -> _Plan | None:
     return _PLANS[key]
 
 
+def usable(device: torch.device) -> bool:
+    """Whether `masked_relu_mlp` pays its way on device: off CUDA its torch ops always run (the
+    reference); on CUDA only where cuBLASLt's library is found (else the fused GEMMs do)."""
+    return device.type != "cuda" or _lib() is not None
+
+
 def available(device: torch.device, dtype: torch.dtype) -> bool:
     """Whether cuBLASLt's mask epilogues can run on device in dtype (CUDA, bf16 or fp16)."""
     return device.type == "cuda" and dtype in _DTYPES and _lib() is not None
