@@ -183,6 +183,11 @@ class TrainConfig:
     """Stop learning the poses once they settle (refine_settle_px): the corrections stay as
     they are and the rays leave the autograd graph, so the rest of the run no longer pays for
     the pose gradient (the hash grid's position gradient, the rays' backward)."""
+    refine_reset_deg: float = field(default=0.0, metadata={"min": 0.0, "max": 180.0})
+    """While refining poses, every 1 % of the budget a pose row whose correction turns
+    further than this (degrees) is put back to no correction, its optimiser state cleared
+    (`pose_guard`: a row that ran away, its view's events pulling it further). Needs a
+    correction per pose (no knots, no sharing). 0: off."""
     refine_diffuse_until: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
     """While refining poses, the colour ignores the view direction (the ngp colour MLP's
     inputs past SH degree 0 masked) until this budget fraction, or until the poses settle
@@ -281,6 +286,10 @@ class TrainConfig:
         _check(ok, where, "refine_settle_px", "needs refine_poses (it watches the corrections)")
         ok = self.refine_poses or not self.refine_freeze
         _check(ok, where, "refine_freeze", "needs refine_poses (it stops the pose learning)")
+        per_pose = self.refine_knots == 0 and not self.refine_shared
+        ok = self.refine_reset_deg == 0 or (self.refine_poses and per_pose)
+        why = "needs refine_poses with a correction per pose (no knots, no refine_shared)"
+        _check(ok, where, "refine_reset_deg", why)
         ok = self.refine_poses or self.refine_diffuse_until == 0
         _check(ok, where, "refine_diffuse_until", "needs refine_poses (it ends when they settle)")
         ok = self.refine_diffuse_until == 0 or self.backend == "ngp"

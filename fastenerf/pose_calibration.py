@@ -19,6 +19,7 @@ from .coarse_to_fine import set_encoding_window
 from .config import TrainConfig
 from .errors import InputError
 from .fields.base import Field
+from .pose_guard import reset_runaways
 from .pose_refine import PoseRefiner, RowAdam
 from .pose_settle import PoseSettle
 from .sampling import RayBatch, RaySampler
@@ -143,6 +144,8 @@ class PoseCalibration:
         self.lr = 0.0  # this step's lr, on the host (the device may hold a copy)
         self.frozen = False  # the poses settled and refine_freeze stopped their learning
         self.view_held = False  # the colour ignores the view direction (refine_diffuse_until)
+        self.resets: torch.Tensor | None = None  # rows put back (refine_reset_deg), on device
+        self._guard_look = -1  # the budget percent last guarded
 
     def schedule(self, progress: float) -> bool:
         """The lr and the shared phase at training `progress` in [0, 1]; returns whether the
@@ -171,6 +174,17 @@ class PoseCalibration:
             with torch.no_grad():
                 turns = self.refiner.corrections()[self.refiner.used, :3]
             self.settle.look(progress, turns)
+
+    def guard(self, progress: float, opt: torch.optim.Optimizer) -> None:
+        """Once every 1 % of the budget, put back the rows whose correction turned further
+        than refine_reset_deg, and their state in the pose optimiser `opt` (`pose_guard`)."""
+        look = int(progress * 100)
+        if self.cfg.refine_reset_deg <= 0 or look == self._guard_look:
+            return
+        self._guard_look = look
+        state = opt.state.get(self.refiner.delta, {})
+        n = reset_runaways(self.refiner.delta, state, np.radians(self.cfg.refine_reset_deg))
+        self.resets = n if self.resets is None else self.resets + n
 
     @torch.no_grad()
     def forget_moments(self, opt: torch.optim.Optimizer) -> None:
@@ -263,6 +277,11 @@ class PoseCalibration:
             out["poses_frozen"] = float(self.frozen)
         if self.cfg.refine_diffuse_until > 0:
             out["view_held"] = float(self.view_held)
+        if self.cfg.refine_reset_deg > 0:
+            n = self.resets
+            if n is None:
+                n = torch.zeros((), device=self.refiner.delta.device)
+            out["pose_rows_reset"] = n.float() if on_device else float(n)
         return out
 
     def report(self) -> dict[str, Any]:
@@ -277,4 +296,5 @@ class PoseCalibration:
             "corrections": "world-frame [rotation vector (rad), shift (world units)]",
             **({} if self.settle is None else {"settled_at": self.settle.settled_at}),
             "frozen": self.frozen,
+            **({} if self.resets is None else {"rows_reset": int(self.resets)}),
         }

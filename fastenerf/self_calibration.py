@@ -153,6 +153,7 @@ class SelfCalibration:
             set_group_lr(g, lr)
         if pc is not None:
             pc.window(progress)
+            pc.guard(progress, pc.optimizer or self.optimizer)
 
     def param_groups(self) -> list[dict]:
         """Every optimiser group (poses, thresholds) of both optimisers."""

@@ -957,3 +957,57 @@ def test_refine_diffuse_needs_the_poses_refined_and_the_ngp_field():
     with pytest.raises(InputError, match="'refine_diffuse_until' needs the ngp backend"):
         tiny(refine_poses=True, refine_diffuse_until=0.3).validate()
     assert ngp_tiny(refine_poses=True, refine_diffuse_until=0.3).validate()
+
+
+def test_reset_runaways_puts_back_only_the_rows_past_the_turn():
+    """`pose_guard.reset_runaways`: the rows turned further than the bound, and their rows of
+    every (G, ·) state tensor, are zeroed in place; the rest, shifts included, untouched."""
+    from fastenerf.pose_guard import reset_runaways
+
+    g = torch.Generator().manual_seed(0)
+    delta = torch.randn(6, 6, generator=g) * 1e-3
+    delta[2, :3] = torch.tensor([0.1, 0.0, 0.0])  # 5.7°
+    delta[4, :3] = torch.tensor([0.0, 0.0, -0.06])  # 3.4°
+    before = delta.clone()
+    state = {"exp_avg": torch.ones(6, 6), "row_steps": torch.full((6, 1), 7.0), "step": 3}
+    n = reset_runaways(delta, state, math.radians(3.0))
+    assert int(n) == 2 and state["step"] == 3
+    bad = torch.tensor([False, False, True, False, True, False])
+    assert (delta[bad] == 0).all() and torch.equal(delta[~bad], before[~bad])
+    assert (state["exp_avg"][bad] == 0).all() and (state["exp_avg"][~bad] == 1).all()
+    assert (state["row_steps"][bad] == 0).all() and (state["row_steps"][~bad] == 7).all()
+    assert int(reset_runaways(delta, state, math.radians(3.0))) == 0
+
+
+@pytest.mark.parametrize("bound", [0.0, 2.0])
+def test_refine_reset_deg_puts_back_a_runaway_row_in_a_run(scene, tmp_path, bound):
+    """A row turned 5° by hand is put back at the next guard (every 1 % of the budget), its
+    row Adam state cleared, and the count is in the stats and config.json; without the
+    option it stays where it is."""
+    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, steps=40)
+    tr = Trainer(scene, tiny(**cfg, refine_reset_deg=bound), tmp_path / "r")
+    tr.step()
+    pc = tr.selfcal.pose_cal
+    row = int(torch.nonzero(pc.refiner.used)[3])
+    with torch.no_grad():
+        pc.refiner.delta[row, :3] = torch.tensor([0.0, math.radians(5.0), 0.0])
+    tr.step()  # progress 1/40: a new percent, a guard
+    turn = float(pc.refiner.delta.detach()[row, :3].norm())
+    if not bound:
+        assert turn > math.radians(4.0) and "pose_rows_reset" not in tr.selfcal.stats()
+        return
+    assert turn < math.radians(0.5)  # put back (then at most one small step)
+    state = pc.optimizer.state[pc.refiner.delta]
+    assert float(state["row_steps"][row]) <= 1.0
+    assert tr.selfcal.stats()["pose_rows_reset"] == 1.0
+    tr.run(progress=False)
+    conf = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert conf["self_calibration"]["poses"]["rows_reset"] >= 1
+
+
+def test_refine_reset_deg_needs_a_correction_per_pose():
+    with pytest.raises(InputError, match="'refine_reset_deg' needs refine_poses"):
+        tiny(refine_reset_deg=2.0).validate()
+    with pytest.raises(InputError, match="'refine_reset_deg' needs refine_poses"):
+        tiny(refine_poses=True, refine_knots=8, refine_reset_deg=2.0).validate()
+    assert tiny(refine_poses=True, refine_reset_deg=2.0).validate()
