@@ -288,6 +288,29 @@ def test_graph_body_takes_the_plain_paths_steps_through_refine_diffuse(scene, tm
     assert bool(net.w_mask[0, net.n_h :].all())  # the SH inputs back on
 
 
+def test_graph_body_takes_the_plain_paths_steps_through_a_pose_reset(scene, tmp_path):
+    """refine_reset_deg on the graphed body: a row turned 5° by hand after the first step is
+    put back in place at the next guard, and the body's losses are the plain path's."""
+    import math
+
+    kw = dict(steps=12, refine_poses=True, refine_start=0.0, refine_warmup=0.0)
+    kw.update(refine_reset_deg=2.0)
+    out = []
+    for mode in ("plain", "graph"):
+        tr = make(scene, tmp_path / mode, mode, **kw)
+        tr.step()
+        pc = tr.selfcal.pose_cal
+        row = int(torch.nonzero(pc.refiner.used)[3])
+        with torch.no_grad():
+            pc.refiner.delta[row, :3] = torch.tensor([math.radians(5.0), 0.0, 0.0])
+        for _ in range(7):
+            tr.step()
+        tr.flush_stats()
+        assert float(pc.resets) == 1.0
+        out.append([s["loss"] for s in tr.history])
+    assert_same_losses(*out)
+
+
 def test_graph_body_takes_the_plain_paths_steps_through_a_batch_resize(
     scene, tmp_path, monkeypatch
 ):
