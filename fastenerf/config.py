@@ -287,8 +287,9 @@ class TrainConfig:
         ok = self.refine_poses or not self.refine_freeze
         _check(ok, where, "refine_freeze", "needs refine_poses (it stops the pose learning)")
         per_pose = self.refine_knots == 0 and not self.refine_shared
+        per_pose = per_pose and self.refine_shared_until == 0
         ok = self.refine_reset_deg == 0 or (self.refine_poses and per_pose)
-        why = "needs refine_poses with a correction per pose (no knots, no refine_shared)"
+        why = "needs refine_poses with a correction per pose (no knots, no sharing)"
         _check(ok, where, "refine_reset_deg", why)
         ok = self.refine_poses or self.refine_diffuse_until == 0
         _check(ok, where, "refine_diffuse_until", "needs refine_poses (it ends when they settle)")

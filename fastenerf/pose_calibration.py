@@ -6,6 +6,8 @@ own optimiser) or as one group of `SelfCalibration`'s Adam ("adam"); their lr fo
 `pose_lr`, the row Adam's significance gate `row_gate`, and refine_decay shrinks the rows a
 batch saw after each step. Until refine_shared_until every pose shares one correction (the
 rows' summed gradient); meanwhile the coarse-to-fine schedule weights the field's encoding.
+Until the poses settle (or refine_diffuse_until) the colour may be held view-independent, and
+every 1 % of the budget a row that ran past refine_reset_deg is put back (`pose_guard`).
 """
 
 from __future__ import annotations
