@@ -19,6 +19,8 @@ LABEL=DIR. Without a label a row is named by the folder's last two parts, SCENE/
   change of a buffer's capacity; runs that record it);
 - compacting: the share of the last evaluation interval's steps that compacted;
 - error left: rotation error the poses still have (°, perturbed runs);
+- largest turn: the largest correction any pose row had at the end (°, refined runs): a row
+  that ran away stands out (gpu_s53's lattice at 1°: 9.5° where the rest stay under 0.7°);
 - settled: the budget fraction at which the windows lengthened (`refine_settle_px`), from
   the run's config.json.
 With --phases, where a run's step time goes instead: ms per step between consecutive --at
@@ -101,8 +103,9 @@ def row(label: str, run: dict, at: list[float], base: dict | None) -> list[str]:
     cells.append(_num(None if slots is None else slots / 1e6, ".2f"))
     cells.append(_num(last.get("graph_captures"), "d"))
     cells.append(_num(last.get("compacted_share"), ".2f"))
-    err = last.get("pose_error_deg")
-    cells.append(DASH if err is None else f"{err:.3f}°")
+    for key, fmt in (("pose_error_deg", ".3f"), ("pose_correction_max_deg", ".2f")):
+        v = last.get(key)
+        cells.append(DASH if v is None else f"{v:{fmt}}°")
     cells.append(_num(run.get("settled_at"), ".0%"))
     return cells
 
@@ -133,7 +136,7 @@ def table(items: list[str], at: list[float], base: str | None = None, phases: bo
         head = ["run", *[f"{a:g}–{b:g} s" for a, b in pairwise(at)], "compacting from", "share"]
     else:
         head = ["run", *[f"{t:g} s" for t in at], "Δ", "ms/step", "trained M", "marched M"]
-        head += ["slots M", "captures", "compacting", "error left", "settled"]
+        head += ["slots M", "captures", "compacting", "error left", "largest turn", "settled"]
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     for (label, _), run in zip(parsed, runs, strict=True):
         if phases:

@@ -1047,9 +1047,9 @@ def test_gpu_stage_parts_pieces_rejoin_to_the_same_warp_so(tmp_path):
 
 def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
     """run_table: PSNR at the asked times ("—" where none was scheduled), Δ against the same
-    scene's --base row, step time, samples, buffer slots, compaction, error left and
-    settled_at from the run's config.json; --out is written once, an existing one refused
-    and left alone."""
+    scene's --base row, step time, samples, buffer slots, compaction, error left, the
+    largest correction and settled_at from the run's config.json; --out is written once, an
+    existing one refused and left alone."""
     from benchmarks import run_table
 
     def result(folder, psnrs, settled, **last):
@@ -1078,16 +1078,17 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
         trained_slots=1_802_240,
         graph_captures=7,
         pose_error_deg=0.0871,
+        pose_correction_max_deg=9.4981,
     )
     args = [str(out / "none0"), str(out / "ref2"), "--at", "5", "15", "60", "--base", "none0"]
     assert run_table.main(args) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith("| run | 5 s | 15 s | 60 s | Δ | ms/step |") and len(lines) == 4
-    none0 = "| s/none0 | 30.00 | — | 32.00 | +0.00 | 6.00 | 0.90 | — | — | — | — | — | — |"
+    none0 = "| s/none0 | 30.00 | — | 32.00 | +0.00 | 6.00 | 0.90 | — | — | — | — | — | — | — |"
     assert lines[2] == none0
     assert lines[3] == (
         "| s/ref2 | 25.00 | — | 29.50 | -2.50 | 6.00 | 1.40 | 2.10 | 1.80 | 7 | 1.00 | 0.087° "
-        "| 27% |"
+        "| 9.50° | 27% |"
     )
     table = tmp_path / "t.md"
     assert run_table.main([f"mine={out / 'ref2'}", "--out", str(table)]) == 0
