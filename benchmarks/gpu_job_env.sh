@@ -7,6 +7,9 @@
 #   ready SCENE    waits up to 900 s for DATA/SCENE.ready (a later call copies the scene in)
 #   profile NAME SCENE [ARGS]   `benchmarks.profile_step` of DATA/SCENE at WARMUP (1000) steps,
 #                  50 profiled, into RES/NAME (its log RES/NAME.log), then a progress note
+#   profiles NAME=JSON...   `profile --trace` of every scene in $SCENES (the five built-in
+#                  and mesh scenes unless set) with these variants in one process each, into
+#                  RES/prof_SCENE, then each variant's trace read by `gaps`
 #   gaps NAME VARIANT   RES/NAME/VARIANT's trace (a `profile --trace`) read by
 #                  `benchmarks.trace_gaps` into RES/gaps_NAME_VARIANT.md, then a progress note
 #   cuda_tests TEST_ARGS...   pytest on the tiny test scene HERE/tiny/scene (made before the
@@ -26,6 +29,14 @@ profile() {
     $PY -m benchmarks.profile_step --scene "$DATA/$scene" --device "$DEVICE" \
         --warmup "${WARMUP:-1000}" --steps 50 --quiet --out "$RES/$name" "$@" > "$RES/$name.log" 2>&1
     note "profile $name rc $?"
+}
+profiles() {
+    local s spec args=()
+    for spec in "$@"; do args+=(--variant "$spec"); done
+    for s in ${SCENES:-toyset shiny blocks plant lattice}; do
+        profile "prof_$s" "$s" --trace "${args[@]}"
+        for spec in "$@"; do gaps "prof_$s" "${spec%%=*}"; done
+    done
 }
 gaps() {
     $PY -m benchmarks.trace_gaps "$RES/$1/$2/trace.json.gz" --out "$RES/gaps_$1_$2.md" \

@@ -293,7 +293,7 @@ def _operand(t: torch.Tensor) -> tuple[torch.Tensor, int, bool]:
 def _lt_plan(
     x: torch.Tensor, m: int, k: int, ldb: int, trans_b: bool, forward: bool
 ) -> _Plan | None:
-    if not available(x.device, x.dtype) or x.shape[0] == 0 or ldb % (_POINTER_ALIGN // 2):
+    if not available(x.device, x.dtype) or x.shape[0] == 0:  # `_operand` aligned ldb
         return None
     index = x.device.index if x.device.index is not None else torch.cuda.current_device()
     return _plan((index, _DTYPES[x.dtype], m, x.shape[0], k, ldb, trans_b, forward))

@@ -17,13 +17,9 @@ set -u
 HERE=$(cd "$(dirname "$0")" && pwd)
 AFTER=${AFTER:-/var/tmp/after}; DATA=${DATA:-/var/tmp/data}
 RES=${RES:-/var/tmp/res}/s54
-source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, profile, gaps, cuda_tests, $PY; cd there
+source "$AFTER/benchmarks/gpu_job_env.sh"  # note, ready, profiles, cuda_tests, $PY; cd there
 cuda_tests tests/test_relu_mask.py tests/test_mlp_widths.py tests/test_graph_step.py \
     -k "relu_mask or (relu and not falls_back and not needs_a_captured)"
 ready shiny  # the last scene staged: the profiles run on a quiet machine
-for s in toyset shiny blocks plant lattice; do
-    profile "prof_$s" "$s" --trace --variant 'base={}' \
-        --variant 'mask={"backend_options": {"relu_mask": true}}'
-    for v in base mask; do gaps "prof_$s" $v; done
-done
+profiles 'base={}' 'mask={"backend_options": {"relu_mask": true}}'
 run_lists runs.txt runs_20.txt
