@@ -44,13 +44,6 @@ class NetworkOptions:
     activation kernel's pass over every sample. New CUDA runs set it (`GPU_NETWORK`); on the
     CPU torch's `_addmm_activation` is an addmm and then a clamp, nothing saved. False: a
     GEMM, then a ReLU kernel, each module called as nn.Sequential would."""
-    relu_mask: bool = False
-    """Where a backward will run, each hidden layer is one GEMM whose epilogue applies the
-    ReLU and keeps its mask as bits (cuBLASLt's RELU_AUX), and the backward applies the mask
-    in the GEMM that makes the layer's gradient (DRELU; fields/relu_mask.py), without a
-    threshold pass over every sample's activations a hidden layer (fused_relu's backward
-    has one). The same function and gradients; off the GPU (or where cuBLASLt has no
-    algorithm for a shape) torch ops apply the mask, slower than without it."""
     bf16_features: bool = False
     """Where the MLPs run under bf16 autocast (the GPU), the hash grid and the SH encoding
     write their features and read their gradient in bf16 (kernels/hashgrid.py, sh.py): the
@@ -255,8 +248,24 @@ def _is_section(f: dataclasses.Field) -> bool:
     )
 
 
+# Options that were removed, each with the value that meant "off": a saved config that has
+# it off still loads (the key is dropped); one that turned it on is an error.
+RETIRED = {"relu_mask": False}  # slower on every scene (RESULTS.md, the forty-second session)
+
+
+def _retired(key: str, value: Any, where: str) -> bool:
+    """Whether `key` is a retired option given its old default (drop it); an error where it
+    was turned on."""
+    if key not in RETIRED:
+        return False
+    if value != RETIRED[key]:
+        raise InputError(f"{where}: '{key}' was removed (it is off now); leave it out")
+    return True
+
+
 def nest_options(cls: type, d: dict, where: str) -> dict:
-    """`d` with every flat key moved into its section; one line for an unknown key."""
+    """`d` with every flat key moved into its section; one line for an unknown key. A
+    retired key at its old default is dropped (`RETIRED`)."""
     if not isinstance(d, dict):
         raise InputError(f"{where}: must be a JSON object")
     sections = {f.name for f in dataclasses.fields(cls) if _is_section(f)}
@@ -267,12 +276,16 @@ def nest_options(cls: type, d: dict, where: str) -> dict:
             if not isinstance(value, dict):
                 raise InputError(f"{where}: '{key}' must be an object (a section of options)")
             for k, v in value.items():
+                if _retired(k, v, where):
+                    continue
                 if names.get(k) != key:
                     valid = ", ".join(k2 for k2, s in names.items() if s == key)
                     raise InputError(f"{where}: unknown key '{key}.{k}' (valid: {valid})")
                 _put(out, key, k, v, where)
         elif key in names:
             _put(out, names[key], key, value, where)
+        elif _retired(key, value, where):
+            continue
         else:
             valid = ", ".join([*sorted(sections), *names])
             raise InputError(f"{where}: unknown key '{key}' (valid: {valid})")

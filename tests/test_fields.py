@@ -358,10 +358,9 @@ def test_ngp_update_only_every_update_every_steps(make, monkeypatch):
     assert f.grid.threshold.item() >= 0  # real updates ran (the initial threshold is -0.5)
 
 
-@pytest.mark.parametrize("option", [{"fused_relu": True}, {"fused_relu": True, "relu_mask": True}])
+@pytest.mark.parametrize("option", [{"fused_relu": True}])
 def test_ngp_fused_relu_renders_and_trains_as_the_plain_field(make, option):
-    """fused_relu (each hidden ReLU in its GEMM), with or without relu_mask (the ReLU masks
-    applied in the backward's GEMMs), is how the MLPs run, not what they are: the same
+    """fused_relu (each hidden ReLU in its GEMM) is how the MLPs run, not what they are: the same
     parameters render the same colours and depths with the same gradients (within what the
     plain field differs from itself by), and the options are in the field's saved config."""
     plain, fused, again = (make("ngp", **o) for o in ({}, option, {}))

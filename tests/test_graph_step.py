@@ -116,14 +116,12 @@ def test_fused_relu_steps_are_the_plain_mlps_steps_captured_or_not(scene, tmp_pa
     [
         ({"bf16_features": False}, {"bf16_features": True}),
         ({"distortion_layout": "ray"}, {"distortion_layout": "block"}),
-        ({"relu_mask": False}, {"relu_mask": True}),
     ],
-    ids=["bf16", "block", "relu_mask"],
+    ids=["bf16", "block"],
 )
 def test_gpu_options_train_as_without_them_captured_or_not(scene, tmp_path, base, option):
-    """bf16_features (the hash grid's and the SH's features in bf16), the distortion loss's
-    block layout and relu_mask (cuBLASLt's mask epilogues) change how a step runs, not what
-    it computes."""
+    """bf16_features (the hash grid's and the SH's features in bf16) and the distortion
+    loss's block layout change how a step runs, not what it computes."""
     assert_trains_as(scene, tmp_path, base, option)
 
 

@@ -197,3 +197,18 @@ def test_ngp_box_shrinks_to_the_cylinder(scene_config):
     assert plain.aabb.tolist() == [-1.0] * 3 + [1.0] * 3
     with pytest.raises(InputError, match="'cylinder' does not overlap the box"):
         scene_config(16, 12, cylinder=CylinderConfig(0.25, 2.0, 3.0))
+
+
+@pytest.mark.parametrize("where", ["flat", "nested"])
+def test_a_retired_option_at_its_old_default_loads_and_turned_on_is_one_line(where):
+    """A run saved while `relu_mask` existed has it false in its config: that still loads,
+    as the same options; a config that turned it on is refused, naming the key."""
+    off = {"relu_mask": False, "hidden": 32}
+    on = {"relu_mask": True}
+    if where == "nested":
+        off, on = {"network": off}, {"network": on}
+    assert parse_options("ngp", off) == parse_options("ngp", {"hidden": 32})
+    with pytest.raises(InputError, match="'relu_mask' was removed"):
+        parse_options("ngp", on)
+    with pytest.raises(InputError, match="unknown key"):
+        parse_options("ngp", {"relu_masks": False})

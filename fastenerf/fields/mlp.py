@@ -23,9 +23,9 @@ With `fused_relu` each hidden layer is one GEMM whose epilogue applies the ReLU 
 RELU_BIAS, reached through `torch._addmm_activation` with a zero bias) instead of a GEMM and
 a separate ReLU kernel that reads and writes every sample's activations again (what that
 pass costs a training step: benchmarks/RESULTS.md, the thirty-eighth session). The backward
-is the same three kernels either way, unless `relu_mask` also keeps each ReLU's mask as bits
-and applies it in the backward's GEMMs (fields/relu_mask.py), which leaves out the backward's
-threshold pass a hidden layer.
+is the same three kernels either way (cuBLASLt's DRELU epilogue, which would fold the
+backward's threshold pass into a GEMM, ran as a separate kernel on an H200 and lost:
+benchmarks/RESULTS.md, the forty-second session).
 """
 
 from __future__ import annotations
@@ -33,8 +33,6 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
-
-from .relu_mask import masked_relu_mlp, usable
 
 ALIGN = 8  # elements: 16 bytes of bf16, what cuBLAS's vectorised kernels need of a row
 N_SH = 16  # the degree-4 SH encoding's width
@@ -89,23 +87,17 @@ def linear_relu(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
 
 class MLP(nn.Sequential):
     """Linear (no bias) + ReLU layers and a linear output, run with each hidden layer's ReLU
-    fused into its GEMM when `fused_relu`, and its mask kept as bits for the backward's GEMMs
-    when `relu_mask` and a backward will run (module docstring); the same parameters and
-    state dict either way."""
+    fused into its GEMM when `fused_relu` (module docstring); the same parameters and state
+    dict either way."""
 
-    def __init__(self, *layers: nn.Module, fused_relu: bool = False, relu_mask: bool = False):
+    def __init__(self, *layers: nn.Module, fused_relu: bool = False):
         super().__init__(*layers)
         self.fused_relu = fused_relu
-        self.relu_mask = relu_mask
 
     def run(self, x: torch.Tensor, first_weight: torch.Tensor | None = None) -> torch.Tensor:
         """The layers on x (N, in) -> (N, out); first_weight: the first layer's weight to use
         in its place (ColorMLP's masked one)."""
         layers = list(self)
-        masked = self.relu_mask and torch.is_grad_enabled() and usable(x.device)
-        if masked and _relu_chain(layers):
-            ws = [layer.weight for layer in layers[::2]]
-            return _run_masked(x, [ws[0] if first_weight is None else first_weight, *ws[1:]])
         i = 0
         while i < len(layers):
             layer, w = layers[i], first_weight if i == 0 else None
@@ -122,30 +114,12 @@ class MLP(nn.Sequential):
         return self.run(x)
 
 
-def _relu_chain(layers: list[nn.Module]) -> bool:
-    """Whether layers are Linear, ReLU, …, Linear (what `masked_relu_mlp` runs)."""
-    kinds = [nn.Linear if i % 2 == 0 else nn.ReLU for i in range(len(layers))]
-    return len(layers) % 2 == 1 and all(
-        isinstance(m, k) for m, k in zip(layers, kinds, strict=True)
-    )
-
-
-def _run_masked(x: torch.Tensor, ws: list[torch.Tensor]) -> torch.Tensor:
-    """`masked_relu_mlp` in autocast's dtype where autocast is on (as F.linear would), else
-    in the weights'."""
-    kind = x.device.type
-    dt = torch.get_autocast_dtype(kind) if torch.is_autocast_enabled(kind) else ws[0].dtype
-    with torch.autocast(kind, enabled=False):
-        return masked_relu_mlp(x.to(dt), [w.to(dt) for w in ws])
-
-
 def mlp(
     n_in: int,
     hidden: int,
     n_out: int,
     n_hidden_layers: int,
     fused_relu: bool = False,
-    relu_mask: bool = False,
 ) -> MLP:
     """Linear (no bias) + ReLU per hidden layer, then a linear output: (N, n_in) -> (N, n_out)."""
     # No biases, like tiny-cuda-nn's fully fused MLPs: the hash features carry the offsets.
@@ -155,7 +129,7 @@ def mlp(
         layers += [nn.Linear(d, hidden, bias=False), nn.ReLU(inplace=True)]
         d = hidden
     layers.append(nn.Linear(d, n_out, bias=False))
-    return MLP(*layers, fused_relu=fused_relu, relu_mask=relu_mask)
+    return MLP(*layers, fused_relu=fused_relu)
 
 
 _WORDS = ((torch.int64, 8), (torch.int32, 4), (torch.int16, 2))  # (dtype, bytes), widest first
@@ -257,11 +231,9 @@ class ColorMLP(MLP):
     layers' dtype (bf16 under autocast), a view of the padded one's first 3 columns.
     """
 
-    def __init__(
-        self, geo_features: int, hidden: int, fused_relu: bool = False, relu_mask: bool = False
-    ):
+    def __init__(self, geo_features: int, hidden: int, fused_relu: bool = False):
         plain = mlp(geo_features + N_SH, hidden, N_RGB, 2)
-        super().__init__(*plain, fused_relu=fused_relu, relu_mask=relu_mask)
+        super().__init__(*plain, fused_relu=fused_relu)
         self.n_h = 1 + geo_features
         self.n_pad = aligned(self.n_h + N_SH) - (self.n_h + N_SH)
         with torch.no_grad():

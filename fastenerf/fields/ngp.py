@@ -149,7 +149,7 @@ class NGPField(Field):
         gen = torch.Generator().manual_seed(seed)
         self.table = nn.Parameter(init_table(self.grid_cfg, "cpu", generator=gen))
         n_in = self.grid_cfg.n_output_dims
-        relu = {"fused_relu": net.fused_relu, "relu_mask": net.relu_mask}
+        relu = {"fused_relu": net.fused_relu}
         self.density_net = _mlp(n_in, net.hidden, 1 + net.geo_features, 1, **relu)
         self.color_net = ColorMLP(net.geo_features, net.hidden, **relu)
         self.sampler = OccupancySampler(aabb, opt, cylinder, device)
