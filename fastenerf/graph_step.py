@@ -15,6 +15,9 @@ finite-loss guard and the fused Adam update are captured once into a CUDA graph 
   capacities, the march's cone, whether level weights apply), the self-calibration's (whether
   the poses step) and the batch shape; when it changes (the capacity follows the scene's
   carving), the step runs eagerly for `WARMUP` steps on a side stream and is captured again.
+  With `keys` > 1 the graphs of that many keys are kept, each with the field's buffers it
+  writes (`Field.graph_state`) and its gradients, so a capacity that returns to a recent size
+  (it turns back and forth at a quantum's edge) replays its graph instead of capturing anew.
 - **Stats** are one stacked vector the graph writes; each step's copy of it goes to the
   trainer's pending stats, so nothing reads the device per step.
 
@@ -26,6 +29,7 @@ eager path for the rest of the run, with one warning.
 from __future__ import annotations
 
 import warnings
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -92,6 +96,17 @@ class _Static:
         return RayBatch(**{**batch.__dict__, **fields})
 
 
+@dataclass
+class _Kept:
+    """A key's graphs put aside for a later return: with their outputs, the gradients they
+    write (set back as the parameters' .grad) and the field's buffers they read and write."""
+
+    graphs: list
+    outs: list
+    grads: list
+    field_state: object
+
+
 def release_generator(device: torch.device) -> None:
     """Unmark the device's default generator after a capture that failed at its end: torch ends
     a capture's mark on the generators it registered only when the capture succeeded, and every
@@ -121,6 +136,7 @@ def graphed_step(
     device: torch.device,
     capture: bool | None,
     copies: int = 1,
+    keys: int = 1,
 ) -> GraphedStep | None:
     """A `GraphedStep` of `body` where the step can be captured (the field has a `graph_key`,
     the self-calibration, if any, is `capturable`), with the field's and the calibration's
@@ -130,7 +146,7 @@ def graphed_step(
     lr_as_tensors(optimizer, device)
     if calibration is not None:
         calibration.lr_as_tensors(device)
-    return GraphedStep(body, field, device, capture, calibration, copies)
+    return GraphedStep(body, field, device, capture, calibration, copies, keys)
 
 
 class GraphedStep:
@@ -139,9 +155,11 @@ class GraphedStep:
     body: see `StepBody`; field: the trained field (its `graph_key()` and `train_jitter`);
     capture: capture graphs (default: on CUDA); calibration: the run's `SelfCalibration` or
     None (its `graph_key()` joins the field's, its parameters' gradients are the graph's too);
-    copies: graphs captured of each key, replayed in turn (`TrainConfig.graph_copies`).
+    copies: graphs captured of each key, replayed in turn (`TrainConfig.graph_copies`);
+    keys: the most keys whose graphs are kept, the current one included, the least recently
+    used put down first (`TrainConfig.graph_keys`; 1: a new key drops the old graphs).
     Attributes: captures (graphs captured so far), failure (why capture was given up, or None),
-    replays (steps replayed).
+    replays (steps replayed), returns (key changes that found their graphs kept).
     """
 
     def __init__(
@@ -152,11 +170,13 @@ class GraphedStep:
         capture: bool | None = None,
         calibration=None,
         copies: int = 1,
+        keys: int = 1,
     ):
         self.body, self.field, self.device = body, field, torch.device(device)
-        self.calibration, self.copies = calibration, int(copies)
+        self.calibration, self.copies, self.keys = calibration, int(copies), int(keys)
         self.capture = self.device.type == "cuda" if capture is None else bool(capture)
-        self.captures = self.replays = 0
+        self.captures = self.replays = self.returns = 0
+        self._kept: OrderedDict[tuple, _Kept] = OrderedDict()
         self.failure: str | None = None
         self._key: tuple | None = None
         self._static: _Static | None = None
@@ -173,10 +193,16 @@ class GraphedStep:
         cal = () if self.calibration is None else self.calibration.graph_key()
         key = (batch_key(batch), self.field.graph_key(), cal)
         if key != self._key:
+            kept = self._kept.pop(key, None)  # before the current key's go aside
             if self._key is None or key[0] != self._key[0]:
-                self._static = None  # another batch shape: new buffers
-            self.drop()
+                self._static = None  # another batch shape: new buffers, no graph reads them
+                self.drop()
+                kept = None
+            else:
+                self._put_aside()
             self._key = key
+            if kept is not None:
+                self._take_back(kept)
         if self._static is None:
             self._static = _Static.like(batch)
         static = self._static.fill(batch)
@@ -249,16 +275,43 @@ class GraphedStep:
         warnings.warn(f"CUDA-graph step off, eager from here: {self.failure}", stacklevel=3)
 
     def drop(self) -> None:
-        """Forget the graph (and the gradients it owns); the next steps warm up again."""
-        if self._graphs:
-            for p in self._graph_params():
+        """Forget every graph, kept ones too (and the gradients they own); the next steps
+        warm up again."""
+        if self._graphs or self._kept:
+            for p in self._params():
                 p.grad = None
-        self._graphs, self._outs = [], []
+        self._graphs, self._outs, self._kept = [], [], OrderedDict()
         self._warm = 0
 
-    def _graph_params(self):
+    def _put_aside(self) -> None:
+        """Keep the current key's graphs (if any, and `keys` > 1) for a return to it; the
+        parameters' .grad let go of a graph's gradients either way, so the next key's steps
+        make their own rather than add into a graph's (eager steps' are left as they are)."""
+        self._warm = 0
+        if not self._graphs:
+            return
+        params = self._params()
+        if self.keys > 1:
+            grads = [p.grad for p in params]
+            self._kept[self._key] = _Kept(self._graphs, self._outs, grads, self.field.graph_state())
+            while len(self._kept) > self.keys - 1:
+                self._kept.popitem(last=False)
+        for p in params:
+            p.grad = None
+        self._graphs, self._outs = [], []
+
+    def _take_back(self, kept: _Kept) -> None:
+        """Make a key's kept graphs current again, with their gradients and the field's
+        buffers they write (a key not kept warms up and is captured anew)."""
+        self._graphs, self._outs = kept.graphs, kept.outs
+        for p, g in zip(self._params(), kept.grads, strict=True):
+            p.grad = g
+        self.field.set_graph_state(kept.field_state)
+        self.returns += 1
+
+    def _params(self) -> list[torch.Tensor]:
         extra = [] if self.calibration is None else self.calibration.parameters()
-        return [p for p in (*self.field.parameters(), *extra) if p.grad is not None]
+        return [*self.field.parameters(), *extra]
 
     @staticmethod
     def _snapshot(out: dict, loss: torch.Tensor, parts: dict) -> tuple[dict, torch.Tensor, dict]:

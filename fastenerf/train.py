@@ -167,7 +167,8 @@ class Trainer:
             self.selfcal.lr_as_floats()
         if want == "graph" and self.step_mode == "device":
             args = (self.field, self.optimizer, self.selfcal, self.device, capture)
-            self.graph = graphed_step(self._graph_body, *args, copies=self.cfg.graph_copies)
+            copies, keys = self.cfg.graph_copies, self.cfg.graph_keys
+            self.graph = graphed_step(self._graph_body, *args, copies=copies, keys=keys)
             self.step_mode = "device" if self.graph is None else "graph"
         return self.step_mode
 

@@ -416,3 +416,77 @@ def test_graph_copies_is_checked_and_changes_nothing_without_capture(scene, tmp_
     two = make(scene, tmp_path / "two", "graph", steps=5, graph_copies=2)  # seeds the RNG anew
     assert two.graph.copies == 2
     assert_same_losses(one, losses(two, 5))
+
+
+def test_sampler_graph_state_puts_back_the_buffers_a_kept_graph_writes(scene, tmp_path):
+    """A key's buffers (the fixed march's, with its key) and the capacity's running maximum
+    come back with `set_graph_state` after another capacity made its own, and a march at the
+    first capacity then writes into that very buffer (what a kept graph baked in), not a
+    new one."""
+    trainer = make(scene, tmp_path / "run", "graph", steps=12)
+    for _ in range(WARMUP + 1):
+        trainer.step()
+    field, sampler = trainer.field, trainer.field.sampler
+    cap = field.sample_capacity
+    first, state = cap.capacity, field.graph_state()
+    buf, running = state["fixed"][0], cap.running_max
+    assert buf is not None and running is not None and state["max"][0] is running
+    cap.capacity = 2 * first
+    trainer.step()
+    assert sampler._fixed_out is not buf and sampler._fixed_key[1] == 2 * first
+    cap.use_running_max(torch.zeros_like(running))  # as a reset leaves it: another tensor
+    cap.capacity = first
+    field.set_graph_state(state)
+    assert sampler._fixed_out is buf and cap.running_max is running
+    trainer.step()
+    trainer.flush_stats()
+    assert sampler._fixed_out is buf  # marched into in place: a replay reads the same
+    assert running.item() > 0 and math.isfinite(trainer.history[-1]["loss"])
+
+
+def test_graph_keys_is_checked_and_changes_nothing_without_capture(scene, tmp_path):
+    """graph_keys outside 1..8 is one clear error; on the CPU (nothing captured, nothing
+    kept) keeping four keys takes the very steps one does, through a capacity change."""
+    with pytest.raises(InputError, match="graph_keys"):
+        tiny_cfg("ngp", graph_keys=9).resolved(scene.config, "cpu")
+
+    def run(name, keys):
+        trainer = make(scene, tmp_path / name, "graph", steps=8, graph_keys=keys)
+        for i in range(8):
+            if i == 3:
+                trainer.field.sample_capacity.capacity *= 2
+            trainer.step()
+        trainer.flush_stats()
+        assert trainer.graph.keys == keys and not trainer.graph._kept
+        return [s["loss"] for s in trainer.history]
+
+    assert_same_losses(run("one", 1), run("four", 4))
+
+
+@pytest.mark.skipif(not CUDA, reason="no CUDA: capture needs it")
+@pytest.mark.parametrize("copies", [1, 2])
+def test_a_kept_graph_replays_when_its_capacity_returns(scene, tmp_path, copies):
+    """With graph_keys 2 a capacity that goes to another size and back replays the first
+    size's graphs (no capture, one return) and the steps stay the device path's; with 1 the
+    return captures again."""
+    steps = 4 * WARMUP + 8
+    device = make(scene, tmp_path / "device", "device", "cuda", steps=steps)
+    want = losses(device, steps)
+    for keys in (1, 2):
+        graph = make(
+            scene, tmp_path / f"g{keys}", "graph", "cuda", steps=steps, graph_keys=keys,
+            graph_copies=copies,
+        )  # fmt: skip
+        for _ in range(WARMUP + 2):
+            graph.step()
+        g, cap = graph.graph, graph.field.sample_capacity
+        first, before = cap.capacity, g.captures
+        cap.capacity = 2 * first
+        for _ in range(WARMUP + 2):
+            graph.step()
+        assert g.captures == before + copies
+        cap.capacity = first
+        got = losses(graph, steps - 2 * (WARMUP + 2))
+        assert g.failure is None and g.returns == (keys - 1)
+        assert g.captures == before + (1 + (keys == 1)) * copies
+        assert got == pytest.approx(want, rel=1e-4)

@@ -113,6 +113,14 @@ class Field(torch.nn.Module):
         (`fastenerf.graph_step`). None (the default): training steps are not captured."""
         return None
 
+    def graph_state(self) -> object:
+        """What a captured step reads outside its own memory that the field replaces when its
+        `graph_key` changes; None (the default): nothing."""
+        return None
+
+    def set_graph_state(self, state: object) -> None:
+        """Put back a `graph_state()` when a kept graph replays again; a no-op by default."""
+
     def update(self, step: int) -> None:
         """Per-step housekeeping before training step `step` (the ngp occupancy grid); a no-op
         by default."""

@@ -99,6 +99,17 @@ class SampleCapacity:
         self._max, self._read = None, LaggedRead()
         self._recent = collections.deque(maxlen=self.shrink_patience)
 
+    @property
+    def running_max(self) -> torch.Tensor | None:
+        """The device running maximum `observe` folds into (a captured step writes this very
+        tensor), or None before the first march."""
+        return self._max
+
+    def use_running_max(self, t: torch.Tensor) -> None:
+        """Fold into `t` from now on (the running maximum a kept CUDA graph writes, when its
+        step is replayed again: `graph_step`); refresh reads and zeroes it as its own."""
+        self._max = t
+
     def observe(self, n_wanted: torch.Tensor) -> None:
         """Fold a march's (1,) int32 device count into the running maximum (no host read)."""
         if self._max is None:

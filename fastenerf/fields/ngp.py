@@ -368,6 +368,14 @@ class NGPField(Field):
         weights = self.level_weights is not None and self.level_weights_mode
         return (*key, weights)
 
+    def graph_state(self) -> dict:
+        """The sampler's buffers a captured step holds (`OccupancySampler.graph_state`)."""
+        return self.sampler.graph_state()
+
+    def set_graph_state(self, state: dict) -> None:
+        """Put back a `graph_state()` (a kept graph replays again)."""
+        self.sampler.set_graph_state(state)
+
     def use_fixed_capacity(self, on: bool) -> None:
         """March (and compact) training batches into fixed-capacity buffers (no host sync;
         `capacity.py`) or into exactly sized ones (the host reads the counts)."""

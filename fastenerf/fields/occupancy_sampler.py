@@ -128,6 +128,26 @@ class OccupancySampler:
         cap = (self.prunes(), pruned and pruned.capacity)
         return (self.sample_capacity.capacity, cap, self._train_cone())
 
+    def graph_state(self) -> dict:
+        """What a captured training step reads and writes outside its own memory that the
+        sampler replaces when the key changes: the fixed buffers (with their keys) and the
+        capacities' running maxima. `set_graph_state` puts them back when a kept graph of
+        that key replays again (`graph_step`), so it writes what the sampler reads."""
+        caps = (self.sample_capacity, self.pruned_capacity)
+        return {
+            "fixed": (self._fixed_out, self._fixed_key),
+            "pruned": (self._pruned_out, self._pruned_key),
+            "max": [None if c is None else c.running_max for c in caps],
+        }
+
+    def set_graph_state(self, state: dict) -> None:
+        """Make `state` (a `graph_state()`) the sampler's buffers and running maxima again."""
+        self._fixed_out, self._fixed_key = state["fixed"]
+        self._pruned_out, self._pruned_key = state["pruned"]
+        for cap, t in zip((self.sample_capacity, self.pruned_capacity), state["max"], strict=True):
+            if cap is not None and t is not None:
+                cap.use_running_max(t)
+
     def use_fixed_capacity(self, on: bool) -> None:
         """March (and compact) training batches into fixed-capacity buffers (no host sync;
         `capacity.py`) or into exactly sized ones (the host reads the counts)."""
