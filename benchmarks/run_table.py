@@ -16,7 +16,8 @@ LABEL=DIR. Without a label a row is named by the folder's last two parts, SCENE/
 - slots: the slots (padding included) of the fixed-capacity buffer the field trained on at
   the last evaluation, millions (runs that record it);
 - captures: the CUDA graphs the run had captured by its last evaluation (one more at every
-  change of a buffer's capacity; runs that record it);
+  change of a buffer's capacity; runs that record it), and "(N back)" where N key changes
+  replayed kept graphs instead (`graph_keys`);
 - compacting: the share of the last evaluation interval's steps that compacted;
 - error left: rotation error the poses still have (°, perturbed runs);
 - largest turn: the largest correction any pose row had at the end (°, refined runs): a row
@@ -101,7 +102,8 @@ def row(label: str, run: dict, at: list[float], base: dict | None) -> list[str]:
     cells.append(_num(None if marched is None else marched / 1e6, ".2f"))
     slots = last.get("trained_slots")
     cells.append(_num(None if slots is None else slots / 1e6, ".2f"))
-    cells.append(_num(last.get("graph_captures"), "d"))
+    captures, back = _num(last.get("graph_captures"), "d"), last.get("graph_returns")
+    cells.append(f"{captures} ({back} back)" if back else captures)
     cells.append(_num(last.get("compacted_share"), ".2f"))
     for key, fmt in (("pose_error_deg", ".3f"), ("pose_correction_max_deg", ".2f")):
         v = last.get(key)

@@ -92,8 +92,10 @@ class ScheduledEval(Hook):
     trained_slots (the slots, padding
     included, of the fixed-capacity buffer the field trains on now; None where buffers are
     exactly sized), graph_captures (CUDA graphs captured so far in this process: one more at
-    every change of the step's graph key, e.g. a buffer's capacity; None without a graphed
-    step), compositing_share (the share of marched samples compositing used, as
+    every change of the step's graph key, e.g. a buffer's capacity, unless the key's graphs
+    were kept: `TrainConfig.graph_keys`; None without a graphed step), graph_returns (the key
+    changes so far that replayed kept graphs instead; None without a graphed step),
+    compositing_share (the share of marched samples compositing used, as
     `compaction_auto`'s switch last read it; None without the switch), capacity_readings
     (the marched buffer's readings since the previous point, each the most samples a march
     wanted between two occupancy updates, which its capacity followed: `SampleCapacity`;
@@ -169,6 +171,7 @@ class ScheduledEval(Hook):
             "compacted_share": compacted / max(len(self.acc), 1),
             "trained_slots": trained_slots_now(trainer),
             "graph_captures": getattr(trainer.graph, "captures", None),
+            "graph_returns": getattr(trainer.graph, "returns", None),
             "compositing_share": _compositing_share(trainer),
             "capacity_readings": _capacity_readings(trainer),
             "step_ms": 1e3 * (train_s - self.clock) / max(len(self.acc), 1),

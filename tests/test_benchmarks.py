@@ -1077,6 +1077,7 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
         compacted_share=1.0,
         trained_slots=1_802_240,
         graph_captures=7,
+        graph_returns=12,
         pose_error_deg=0.0871,
         pose_correction_max_deg=9.4981,
     )
@@ -1087,8 +1088,8 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
     none0 = "| s/none0 | 30.00 | — | 32.00 | +0.00 | 6.00 | 0.90 | — | — | — | — | — | — | — |"
     assert lines[2] == none0
     assert lines[3] == (
-        "| s/ref2 | 25.00 | — | 29.50 | -2.50 | 6.00 | 1.40 | 2.10 | 1.80 | 7 | 1.00 | 0.087° "
-        "| 9.50° | 27% |"
+        "| s/ref2 | 25.00 | — | 29.50 | -2.50 | 6.00 | 1.40 | 2.10 | 1.80 | 7 (12 back) | 1.00 "
+        "| 0.087° | 9.50° | 27% |"
     )
     table = tmp_path / "t.md"
     assert run_table.main([f"mine={out / 'ref2'}", "--out", str(table)]) == 0

@@ -141,6 +141,7 @@ def test_scheduled_eval_points_say_how_many_steps_compacted(scene, tmp_path):
                 assert p["marched_per_step"] == pytest.approx(p["samples_per_step"])
             sampler = trainer.field.sampler
             assert p["graph_captures"] is None  # no graphed step off CUDA (test_graph_step)
+            assert p["graph_returns"] is None
             assert p["compositing_share"] is None  # compaction fixed on or off: no switch
             if mode == "plain":
                 assert p["trained_slots"] is None and p["capacity_readings"] is None
