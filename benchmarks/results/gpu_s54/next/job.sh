@@ -5,8 +5,8 @@
 # 0. the CUDA-only tests of the graphed step, the kept graphs' (graph_keys, new) among them;
 # 1. runs.txt: 60 s runs of graph_keys=4 beside the default, scene by scene (#17's step:
 #    the mesh scene's 60 s run is 3.05 ms a step, and its capacity turned back 79 times);
-# 2. with what is left, one 300 s run of the default on plant (#17's 5-minute target; the
-#    first line of later_runs.txt), cut off wherever the lease ends.
+# 2. with what is left, settle1.txt: #20 at 1° with the windows lengthening at 1 px of
+#    pose movement instead of 0.3 (refine_settle_px), cut off wherever the lease ends.
 # Everything lands in RES/s55 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
 # scenes, BUDGET_S and WARMUP set, and the paths below: a CPU dry run.
 set -u
@@ -18,8 +18,6 @@ cuda_tests tests/test_graph_step.py
 commit=$(cat "$HERE/COMMIT" 2>/dev/null)
 WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/runs" "$HERE/runs.txt" "$commit"
 note "runs done"
-grep -E '^long0 plant' "$HERE/later_runs.txt" > "$RES/long_plant.txt"
-BUDGET_S=${LONG_S:-300} WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/long" \
-    "$RES/long_plant.txt" "$commit"
-note "long done"
+WAIT_READY=900 bash benchmarks/gpu_runs60.sh "$DATA" "$RES/settle1" "$HERE/settle1.txt" "$commit"
+note "settle1 done"
 touch "$RES/all.done"
