@@ -134,9 +134,8 @@ class TrainConfig:
     """graph: keep the captured steps of this many keys (sample-buffer capacities, cone,
     compaction), the least recently used put down first, each in its own memory; a capacity
     that turns back to a kept size replays its graph instead of warming up and capturing
-    again (each recapture ~20 ms on an H200, and a capacity at a quantum's edge turns back
-    dozens of times a minute: benchmarks/RESULTS.md, the forty-second session). 1: a new key
-    drops the old graph."""
+    again (what a recapture costs, and how often a capacity at a quantum's edge turns back:
+    benchmarks/RESULTS.md, the forty-second session). 1: a new key drops the old graph."""
     chunk: int = field(default=16384, metadata={"min": 1, "max": 1 << 22})
     """Rays per render call outside training (evaluation, rendering)."""
     backend_options: dict[str, Any] = field(default_factory=dict)
