@@ -6,7 +6,9 @@
 # 1. runs.txt: 60 s runs of graph_keys=4 beside the default, scene by scene (#17's step:
 #    the mesh scene's 60 s run is 3.05 ms a step, and its capacity turned back 79 times);
 # 2. with what is left, settle1.txt: #20 at 1° with the windows lengthening at 1 px of
-#    pose movement instead of 0.3 (refine_settle_px), cut off wherever the lease ends.
+#    pose movement instead of 0.3 (refine_settle_px), and with the long windows from the
+#    start (the pose gradient from short ones), scene by scene, cut off wherever the lease
+#    ends.
 # Everything lands in RES/s55 (poll it with benchmarks/gpu_poll.sh). DEVICE=cpu with small
 # scenes, BUDGET_S and WARMUP set, and the paths below: a CPU dry run.
 set -u
