@@ -135,7 +135,9 @@ class TrainConfig:
     compaction), the least recently used put down first, each in its own memory; a capacity
     that turns back to a kept size replays its graph instead of warming up and capturing
     again (what a recapture costs, and how often a capacity at a quantum's edge turns back:
-    benchmarks/RESULTS.md, the forty-second session). 1: a new key drops the old graph."""
+    benchmarks/RESULTS.md, the forty-second session). Kept only while a quarter of the
+    device's memory is free (`graph_step.KEEP_FREE_SHARE`). 1: a new key drops the old
+    graph."""
     chunk: int = field(default=16384, metadata={"min": 1, "max": 1 << 22})
     """Rays per render call outside training (evaluation, rendering)."""
     backend_options: dict[str, Any] = field(default_factory=dict)

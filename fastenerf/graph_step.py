@@ -42,6 +42,10 @@ from .sampling import RayBatch
 # lazily made state, e.g. the optimiser's moments and cuBLAS workspaces, exists before capture).
 WARMUP = 2
 
+# Kept graphs (`keys` > 1) hold their memory pools: a key is kept only while at least this
+# share of the device's memory is free, else every kept graph is let go.
+KEEP_FREE_SHARE = 0.25
+
 # body(batch) -> (out, loss, parts): render, loss, backward and update of one batch; the loss
 # and parts are 0-dim device tensors.
 StepBody = Callable[[RayBatch], tuple[dict, torch.Tensor, dict]]
@@ -291,7 +295,9 @@ class GraphedStep:
         if not self._graphs:
             return
         params = self._params()
-        if self.keys > 1:
+        if self.keys > 1 and not self._room_to_keep():
+            self._kept.clear()  # their pools go back with their graphs
+        elif self.keys > 1:
             grads = [p.grad for p in params]
             self._kept[self._key] = _Kept(self._graphs, self._outs, grads, self.field.graph_state())
             while len(self._kept) > self.keys - 1:
@@ -299,6 +305,14 @@ class GraphedStep:
         for p in params:
             p.grad = None
         self._graphs, self._outs = [], []
+
+    def _room_to_keep(self) -> bool:
+        """Whether the device has `KEEP_FREE_SHARE` of its memory free (one driver query, at
+        a key change only); always off CUDA, where nothing is captured."""
+        if self.device.type != "cuda":
+            return True
+        free, total = torch.cuda.mem_get_info(self.device)
+        return free >= KEEP_FREE_SHARE * total
 
     def _take_back(self, kept: _Kept) -> None:
         """Make a key's kept graphs current again, with their gradients and the field's

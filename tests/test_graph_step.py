@@ -15,7 +15,7 @@ import torch
 
 from fastenerf.data.formats.native import load_scene
 from fastenerf.errors import InputError
-from fastenerf.graph_step import WARMUP, GraphedStep
+from fastenerf.graph_step import KEEP_FREE_SHARE, WARMUP, GraphedStep
 from fastenerf.train import Trainer
 from tests.same_steps import assert_same_losses, assert_same_tensor
 from tests.test_train import NGP_TINY, tiny_cfg
@@ -490,3 +490,33 @@ def test_a_kept_graph_replays_when_its_capacity_returns(scene, tmp_path, copies)
         assert g.failure is None and g.returns == (keys - 1)
         assert g.captures == before + (1 + (keys == 1)) * copies
         assert got == pytest.approx(want, rel=1e-4)
+
+
+@pytest.mark.skipif(not CUDA, reason="no CUDA: capture needs it")
+def test_kept_graphs_let_go_when_the_device_is_short_of_memory(scene, tmp_path):
+    """With less than KEEP_FREE_SHARE of the device's memory free (a real allocation fills
+    it), a key change keeps nothing: the return to the first capacity captures again, as
+    with one key, and the steps go on."""
+    graph = make(scene, tmp_path / "g", "graph", "cuda", steps=24, graph_keys=4)
+    for _ in range(WARMUP + 2):
+        graph.step()
+    g, cap = graph.graph, graph.field.sample_capacity
+    first, before = cap.capacity, g.captures
+    free, total = torch.cuda.mem_get_info()
+    ballast = torch.empty(
+        int(free - 0.5 * KEEP_FREE_SHARE * total), dtype=torch.uint8, device="cuda"
+    )
+    try:
+        cap.capacity = 2 * first
+        for _ in range(WARMUP + 2):
+            graph.step()
+        assert not g._kept
+        cap.capacity = first
+        for _ in range(WARMUP + 2):
+            graph.step()
+    finally:
+        del ballast
+        torch.cuda.empty_cache()  # back to the driver, for the tests after this one
+    graph.flush_stats()
+    assert g.failure is None and g.returns == 0 and g.captures == before + 2
+    assert math.isfinite(graph.history[-1]["loss"])
