@@ -1388,3 +1388,29 @@ def test_graph_relaunch_times_each_pattern_and_refuses_a_cpu(tiny_scene, tmp_pat
     assert graph_relaunch.main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "needs CUDA" in err[0] and not out.exists()
+
+
+def test_fused_mlp_probe_is_float64s_mlp_and_refuses_bad_input(tmp_path, capsys):
+    """The tile-fused MLP's output and gradients (Warp's CPU tiles) are the float64 MLP's
+    within float16 rounding, as torch's float16 MLP is; a bad --n, an existing --out or one
+    that is no .json file is one line and exit code 2, and an existing file stays as it was."""
+    from benchmarks import fused_mlp_probe as probe
+
+    res = probe.probe(128, "cpu")
+    assert set(res["errors"]) == {"y", "gx", "gw1", "gw2"}
+    for key, err in res["errors"].items():
+        assert err < 2e-3 and err <= 2 * res["torch_errors"][key], (key, res)
+    out = tmp_path / "p.json"
+    assert probe.main(["--device", "cpu", "--n", "128", "--out", str(out)]) == 0
+    before = out.read_text()
+    assert json.loads(before)["n"] == 128 and "ms" not in json.loads(before)  # no CPU timing
+    capsys.readouterr()
+    for bad, words in (
+        (["--n", "100"], "multiple of 64"),
+        (["--out", str(out)], "exists"),
+        (["--out", str(tmp_path / "p.txt")], ".json"),
+    ):
+        assert probe.main(["--device", "cpu", *bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], (bad, err)
+    assert out.read_text() == before and not (tmp_path / "p.txt").exists()
