@@ -5,25 +5,28 @@
 The MLPs are a third of a GPU training step (benchmarks/RESULTS.md, the forty-second session),
 and what they cost is mostly memory: torch's GEMMs write every sample's hidden activations,
 read them back for the ReLU's backward, and again for the weight gradients. A fully fused MLP
-(tiny-cuda-nn's) keeps a block of samples' activations on chip. This probe times the
-density MLP's shape (32 -> 64 -> 16, one hidden ReLU layer, no biases) both ways, forward
-and forward+backward, in float16 with float32 accumulation, before anything is built on it:
+(tiny-cuda-nn's) keeps a block of samples' activations on chip. This probe times both of
+ngp's shapes (no biases), the density MLP (32 -> 64 -> 16, one hidden ReLU layer) and the
+colour MLP (32 -> 64 -> 64 -> 8, two), each both ways, forward and forward+backward, in
+float16 with float32 accumulation, before anything is built on it:
 
 - fused: one Warp kernel a pass, `TILE_M` samples a block (`wp.tile_matmul`, cuBLASDx on a
-  GPU); the backward recomputes the hidden layer from the input rather than reading it, and
+  GPU); the backward recomputes the hidden layers from the input rather than reading them, and
   adds each block's weight gradients into float32 buffers (`wp.tile_atomic_add`);
 - torch: `F.linear` and `relu` in float16 under autograd, as the field runs them.
 
-Each variant's median ms (CUDA events; warm-up excluded) and both ways' largest errors
-against a float64 reference (relative to each output's largest value); on the CPU the errors
-only, at a small N: a check, not a timing. Printed as
-JSON, or written atomically to --out (an existing file is refused).
+Per network: each variant's median ms (CUDA events; warm-up excluded) and both ways' largest
+errors against a float64 reference (relative to each output's largest value), or the error
+that stopped it (a tile too large for a block's shared memory is the colour MLP's risk); on
+the CPU the errors only, at a small N: a check, not a timing. Printed as JSON, or written
+atomically to --out (an existing file is refused).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +41,7 @@ from .cli import benchmark_main
 from .timing import time_ms
 
 TILE_M = 64  # samples a block
-N_IN, N_HIDDEN, N_OUT = 32, 64, 16
+N_IN, N_HIDDEN, N_OUT, N_RGB = 32, 64, 16, 8  # N_RGB: the colour MLP's padded output
 
 
 @wp.func
@@ -103,52 +106,135 @@ def _backward(
     wp.tile_atomic_add(gw1, d1)
 
 
-def fused_forward(x, w1, w2) -> torch.Tensor:
-    """x (N, 32) float16, w1 (32, 64), w2 (64, 16) float16 -> y (N, 16) float32; N a
-    multiple of TILE_M."""
-    y = torch.empty(x.shape[0], N_OUT, dtype=torch.float32, device=x.device)
-    launch_tiled(_forward, x.shape[0] // TILE_M, TILE_M, x, [x, w1, w2, y])
+@wp.kernel
+def _forward2(
+    x: wp.array2d(dtype=wp.float16),
+    w1: wp.array2d(dtype=wp.float16),
+    w2: wp.array2d(dtype=wp.float16),
+    w3: wp.array2d(dtype=wp.float16),
+    y: wp.array2d(dtype=wp.float32),
+):
+    """y = relu(relu(x w1) w2) w3 for one block; x (N, 32), w1 (32, 64), w2 (64, 64),
+    w3 (64, 8)."""
+    i = wp.tid()
+    a = wp.tile_load(x, shape=(TILE_M, N_IN), offset=(i * TILE_M, 0))
+    h1 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+    wp.tile_matmul(a, wp.tile_load(w1, shape=(N_IN, N_HIDDEN)), h1)
+    h2 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+    wp.tile_matmul(wp.tile_astype(wp.tile_map(_relu, h1), wp.float16),
+                   wp.tile_load(w2, shape=(N_HIDDEN, N_HIDDEN)), h2)  # fmt: skip
+    out = wp.tile_zeros(shape=(TILE_M, N_RGB), dtype=wp.float32)
+    wp.tile_matmul(wp.tile_astype(wp.tile_map(_relu, h2), wp.float16),
+                   wp.tile_load(w3, shape=(N_HIDDEN, N_RGB)), out)  # fmt: skip
+    wp.tile_store(y, out, offset=(i * TILE_M, 0))
+
+
+@wp.kernel
+def _backward2(
+    x: wp.array2d(dtype=wp.float16),
+    w1: wp.array2d(dtype=wp.float16),
+    w2: wp.array2d(dtype=wp.float16),
+    w3: wp.array2d(dtype=wp.float16),
+    gy: wp.array2d(dtype=wp.float16),
+    gx: wp.array2d(dtype=wp.float32),
+    gw1: wp.array2d(dtype=wp.float32),
+    gw2: wp.array2d(dtype=wp.float32),
+    gw3: wp.array2d(dtype=wp.float32),
+):
+    """`_forward2`'s gradients for one block, as `_backward`'s."""
+    i = wp.tid()
+    a = wp.tile_load(x, shape=(TILE_M, N_IN), offset=(i * TILE_M, 0))
+    b1 = wp.tile_load(w1, shape=(N_IN, N_HIDDEN))
+    b2 = wp.tile_load(w2, shape=(N_HIDDEN, N_HIDDEN))
+    b3 = wp.tile_load(w3, shape=(N_HIDDEN, N_RGB))
+    g = wp.tile_load(gy, shape=(TILE_M, N_RGB), offset=(i * TILE_M, 0))
+    p1 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+    wp.tile_matmul(a, b1, p1)
+    h1 = wp.tile_astype(wp.tile_map(_relu, p1), wp.float16)
+    p2 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+    wp.tile_matmul(h1, b2, p2)
+    h2 = wp.tile_astype(wp.tile_map(_relu, p2), wp.float16)
+    g2 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+    wp.tile_matmul(g, wp.tile_transpose(b3), g2)
+    g2h = wp.tile_astype(wp.tile_map(_masked, g2, p2), wp.float16)
+    g1 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+    wp.tile_matmul(g2h, wp.tile_transpose(b2), g1)
+    g1h = wp.tile_astype(wp.tile_map(_masked, g1, p1), wp.float16)
+    ga = wp.tile_zeros(shape=(TILE_M, N_IN), dtype=wp.float32)
+    wp.tile_matmul(g1h, wp.tile_transpose(b1), ga)
+    wp.tile_store(gx, ga, offset=(i * TILE_M, 0))
+    d3 = wp.tile_zeros(shape=(N_HIDDEN, N_RGB), dtype=wp.float32)
+    wp.tile_matmul(wp.tile_transpose(h2), g, d3)
+    wp.tile_atomic_add(gw3, d3)
+    d2 = wp.tile_zeros(shape=(N_HIDDEN, N_HIDDEN), dtype=wp.float32)
+    wp.tile_matmul(wp.tile_transpose(h1), g2h, d2)
+    wp.tile_atomic_add(gw2, d2)
+    d1 = wp.tile_zeros(shape=(N_IN, N_HIDDEN), dtype=wp.float32)
+    wp.tile_matmul(wp.tile_transpose(a), g1h, d1)
+    wp.tile_atomic_add(gw1, d1)
+
+
+def fused_forward(x: torch.Tensor, ws: list[torch.Tensor]) -> torch.Tensor:
+    """x (N, 32) float16 and the (in, out) float16 weights of either network (`SHAPES`) ->
+    y (N, out) float32; N a multiple of TILE_M."""
+    y = torch.empty(x.shape[0], ws[-1].shape[1], dtype=torch.float32, device=x.device)
+    kernel = _forward if len(ws) == 2 else _forward2
+    launch_tiled(kernel, x.shape[0] // TILE_M, TILE_M, x, [x, *ws, y])
     return y
 
 
-def fused_backward(x, w1, w2, gy) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`fused_forward`'s gradients for gy (N, 16) float16: gx (N, 32), gw1, gw2 float32."""
+def fused_backward(x, ws, gy) -> list[torch.Tensor]:
+    """`fused_forward`'s gradients for gy (N, out) float16: [gx, gw per weight], float32."""
     dev = x.device
-    gx = torch.empty(x.shape[0], N_IN, dtype=torch.float32, device=dev)
-    gw1 = torch.zeros(N_IN, N_HIDDEN, dtype=torch.float32, device=dev)
-    gw2 = torch.zeros(N_HIDDEN, N_OUT, dtype=torch.float32, device=dev)
-    launch_tiled(_backward, x.shape[0] // TILE_M, TILE_M, x, [x, w1, w2, gy, gx, gw1, gw2])
-    return gx, gw1, gw2
+    grads = [torch.empty(x.shape[0], N_IN, dtype=torch.float32, device=dev)]
+    grads += [torch.zeros(w.shape, dtype=torch.float32, device=dev) for w in ws]
+    kernel = _backward if len(ws) == 2 else _backward2
+    launch_tiled(kernel, x.shape[0] // TILE_M, TILE_M, x, [x, *ws, gy, *grads])
+    return grads
 
 
-def reference(x, w1, w2, gy) -> tuple[np.ndarray, ...]:
-    """y and the gradients in float64 (numpy), from the float16 inputs."""
-    x, w1, w2, gy = (t.double().cpu().numpy() for t in (x, w1, w2, gy))
-    pre = x @ w1
-    h = np.maximum(pre, 0.0)
-    gh = (gy @ w2.T) * (pre > 0)
-    return h @ w2, gh @ w1.T, x.T @ gh, h.T @ gy
+def reference(x, ws, gy) -> list[np.ndarray]:
+    """y and the gradients [gx, gw per weight] in float64 (numpy), from the float16 inputs."""
+    x, gy = (t.double().cpu().numpy() for t in (x, gy))
+    ws = [w.double().cpu().numpy() for w in ws]
+    pres, hs = [], [x]
+    for w in ws[:-1]:
+        pres.append(hs[-1] @ w)
+        hs.append(np.maximum(pres[-1], 0.0))
+    g, gws = gy, []
+    for k in range(len(ws) - 1, -1, -1):
+        gws.insert(0, hs[k].T @ g)
+        g = g @ ws[k].T
+        if k:
+            g = g * (pres[k - 1] > 0)
+    return [hs[-1] @ ws[-1], g, *gws]
 
 
-def problem(n: int, device: str, seed: int = 0):
-    """Inputs at the density MLP's shape: x ~ N(0, 1), weights scaled as torch's init."""
+SHAPES = {"density": [N_IN, N_HIDDEN, N_OUT], "colour": [N_IN, N_HIDDEN, N_HIDDEN, N_RGB]}
+
+
+def problem(n: int, widths: list[int], device: str, seed: int = 0):
+    """x ~ N(0, 1) (n, widths[0]), weights (in, out) scaled as torch's init, gy ~ N(0, 1)."""
     g = torch.Generator().manual_seed(seed)
-    x = torch.randn(n, N_IN, generator=g)
-    w1 = torch.randn(N_IN, N_HIDDEN, generator=g) / N_IN**0.5
-    w2 = torch.randn(N_HIDDEN, N_OUT, generator=g) / N_HIDDEN**0.5
-    gy = torch.randn(n, N_OUT, generator=g)
-    return tuple(t.half().to(device) for t in (x, w1, w2, gy))
+    x = torch.randn(n, widths[0], generator=g)
+    ws = [torch.randn(a, b, generator=g) / a**0.5 for a, b in pairwise(widths)]
+    gy = torch.randn(n, widths[-1], generator=g)
+    half = [t.half().to(device) for t in (x, *ws, gy)]
+    return half[0], half[1:-1], half[-1]
 
 
-def _torch_leaves(x, w1, w2, backward: bool) -> list[torch.Tensor]:
+def _torch_leaves(x, ws, backward: bool) -> list[torch.Tensor]:
     """x and the weights as F.linear takes them (out, in), leaves that want a gradient."""
-    return [t.detach().contiguous().requires_grad_(backward) for t in (x, w1.t(), w2.t())]
+    return [t.detach().contiguous().requires_grad_(backward) for t in (x, *(w.t() for w in ws))]
 
 
 def _torch_step(leaves: list[torch.Tensor], gy: torch.Tensor | None) -> torch.Tensor:
     """The MLP as the field runs it, and its backward for gy (None: forward only)."""
-    x, w1, w2 = leaves
-    y = torch.nn.functional.linear(torch.relu(torch.nn.functional.linear(x, w1)), w2)
+    y = leaves[0]
+    for i, w in enumerate(leaves[1:]):
+        y = torch.nn.functional.linear(y, w)
+        if i < len(leaves) - 2:
+            y = torch.relu(y)
     if gy is not None:
         for t in leaves:
             t.grad = None
@@ -166,35 +252,44 @@ def _max_errors(got, want) -> list[float]:
     return out
 
 
-def probe(n: int, device: str, repeats: int = 20) -> dict:
-    """Medians (ms) of both ways, forward and forward+backward, and the fused results' largest
-    errors against float64 relative to each output's largest value."""
-    require(n > 0 and n % TILE_M == 0, f"--n must be a positive multiple of {TILE_M}, got {n}")
-    x, w1, w2, gy = problem(n, device)
-    want = reference(x, w1, w2, gy)
-    y = fused_forward(x, w1, w2)
-    gx, gw1, gw2 = fused_backward(x, w1, w2, gy)
-    leaves = _torch_leaves(x, w1, w2, True)
+def probe_network(n: int, widths: list[int], device: str, repeats: int = 20) -> dict:
+    """One network's medians (ms), both ways, forward and forward+backward, and both ways'
+    largest errors against float64 relative to each output's largest value."""
+    x, ws, gy = problem(n, widths, device)
+    want = reference(x, ws, gy)
+    got = [fused_forward(x, ws), *fused_backward(x, ws, gy)]
+    leaves = _torch_leaves(x, ws, True)
     ty = _torch_step(leaves, gy)
-    tgrads = [leaves[0].grad, leaves[1].grad.t(), leaves[2].grad.t()]
-    names = ("y", "gx", "gw1", "gw2")
+    tgot = [ty, leaves[0].grad, *(t.grad.t() for t in leaves[1:])]
+    names = ["y", "gx", *(f"gw{k + 1}" for k in range(len(ws)))]
     res = {
-        "n": n,
-        "device": device,
-        "tile_m": TILE_M,
-        "errors": dict(zip(names, _max_errors([y, gx, gw1, gw2], want), strict=True)),
-        "torch_errors": dict(zip(names, _max_errors([ty, *tgrads], want), strict=True)),
+        "widths": widths,
+        "errors": dict(zip(names, _max_errors(got, want), strict=True)),
+        "torch_errors": dict(zip(names, _max_errors(tgot, want), strict=True)),
     }
     if device.startswith("cuda"):
-        plain = _torch_leaves(x, w1, w2, False)
+        plain = _torch_leaves(x, ws, False)
         res["ms"] = {
-            "fused_forward": time_ms(lambda: fused_forward(x, w1, w2), device, repeats),
+            "fused_forward": time_ms(lambda: fused_forward(x, ws), device, repeats),
             "fused_forward_backward": time_ms(
-                lambda: (fused_forward(x, w1, w2), fused_backward(x, w1, w2, gy)), device, repeats
+                lambda: (fused_forward(x, ws), fused_backward(x, ws, gy)), device, repeats
             ),
             "torch_forward": time_ms(lambda: _torch_step(plain, None), device, repeats),
             "torch_forward_backward": time_ms(lambda: _torch_step(leaves, gy), device, repeats),
         }
+    return res
+
+
+def probe(n: int, device: str, repeats: int = 20) -> dict:
+    """Both networks (`SHAPES`); a network whose kernels fail (to compile, to launch) is
+    recorded with its error, and the other still runs."""
+    require(n > 0 and n % TILE_M == 0, f"--n must be a positive multiple of {TILE_M}, got {n}")
+    res: dict = {"n": n, "device": device, "tile_m": TILE_M}
+    for name, widths in SHAPES.items():
+        try:
+            res[name] = probe_network(n, widths, device, repeats)
+        except Exception as e:  # noqa: BLE001 - a probe records what stopped it
+            res[name] = {"widths": widths, "error": f"{type(e).__name__}: {e}".splitlines()[0]}
     return res
 
 

@@ -1391,15 +1391,18 @@ def test_graph_relaunch_times_each_pattern_and_refuses_a_cpu(tiny_scene, tmp_pat
 
 
 def test_fused_mlp_probe_is_float64s_mlp_and_refuses_bad_input(tmp_path, capsys):
-    """The tile-fused MLP's output and gradients (Warp's CPU tiles) are the float64 MLP's
-    within float16 rounding, as torch's float16 MLP is; a bad --n, an existing --out or one
+    """The tile-fused MLPs' outputs and gradients (Warp's CPU tiles; the density and the
+    colour network's shapes) are the float64 MLPs' within float16 rounding, as torch's
+    float16 MLPs are; a bad --n, an existing --out or one
     that is no .json file is one line and exit code 2, and an existing file stays as it was."""
     from benchmarks import fused_mlp_probe as probe
 
     res = probe.probe(128, "cpu")
-    assert set(res["errors"]) == {"y", "gx", "gw1", "gw2"}
-    for key, err in res["errors"].items():
-        assert err < 2e-3 and err <= 2 * res["torch_errors"][key], (key, res)
+    assert set(res["density"]["errors"]) == {"y", "gx", "gw1", "gw2"}
+    assert set(res["colour"]["errors"]) == {"y", "gx", "gw1", "gw2", "gw3"}
+    for net in ("density", "colour"):
+        for key, err in res[net]["errors"].items():
+            assert err < 2e-3 and err <= 2 * res[net]["torch_errors"][key], (net, key, res)
     out = tmp_path / "p.json"
     assert probe.main(["--device", "cpu", "--n", "128", "--out", str(out)]) == 0
     before = out.read_text()

@@ -5,9 +5,9 @@
 # 0. the CUDA-only tests of the graphed step, the kept graphs' (graph_keys, new) among them;
 # 1. runs.txt: 60 s runs of graph_keys=4 beside the default, scene by scene (#17's step:
 #    the mesh scene's 60 s run is 3.05 ms a step, and its capacity turned back 79 times);
-# 2. benchmarks.fused_mlp_probe: the density MLP fully fused in Warp tiles against torch's
-#    GEMMs, forward and forward+backward at 2^20 samples (new; at most 5 min, the cuBLASDx
-#    compile included), whether a fused MLP is worth building (#17);
+# 2. benchmarks.fused_mlp_probe: both MLPs fully fused in Warp tiles against torch's GEMMs,
+#    forward and forward+backward at 2^20 samples (new; at most 5 min, the cuBLASDx compile
+#    included), whether a fused MLP is worth building (#17);
 # 3. with what is left, settle1.txt: #20 at 1° with the windows lengthening at 1 px of
 #    pose movement instead of 0.3 (refine_settle_px), and with the long windows from the
 #    start (the pose gradient from short ones), scene by scene, cut off wherever the lease
