@@ -33,11 +33,10 @@ import numpy as np
 import torch
 import warp as wp
 
-from fastenerf.errors import InputError, require
-from fastenerf.io import atomic_path
+from fastenerf.errors import require
 from fastenerf.kernels.common import launch_tiled
 
-from .cli import benchmark_main
+from .cli import benchmark_main, print_or_write_table
 from .timing import time_ms
 
 TILE_M = 64  # samples a block
@@ -310,16 +309,7 @@ def run(args: argparse.Namespace) -> int:
         require(out.suffix.lower() == ".json", f"{out}: the probe writes a .json file")
         require(not out.exists(), f"{out} exists: give a new file (nothing was written)")
     text = json.dumps(probe(n, args.device, args.repeats), indent=2) + "\n"
-    if out is None:
-        print(text, end="")
-        return 0
-    try:
-        with atomic_path(out) as tmp:
-            tmp.write_text(text)
-    except OSError as e:
-        raise InputError(f"{out}: cannot be written ({e.strerror or e})") from None
-    print(out)
-    return 0
+    return print_or_write_table(text, args.out)  # any text: printed, or written atomically
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:
