@@ -35,6 +35,7 @@ import warp as wp
 
 from fastenerf.errors import require
 from fastenerf.kernels.common import launch_tiled
+from fastenerf.run import resolve_device
 
 from .cli import benchmark_main, print_or_write_table
 from .timing import time_ms
@@ -293,7 +294,7 @@ def probe(n: int, device: str, repeats: int = 20) -> dict:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     p.add_argument(
         "--n", type=int, default=None, help="samples (default 2^20 on CUDA, 1024 on the CPU)"
     )
@@ -302,13 +303,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    n = args.n or (1 << 20 if args.device.startswith("cuda") else 1024)
+    device = str(resolve_device(args.device))
+    n = args.n or (1 << 20 if device.startswith("cuda") else 1024)
     require(args.repeats > 0, f"--repeats must be positive, got {args.repeats}")
     out = None if args.out is None else Path(args.out)
     if out is not None:
         require(out.suffix.lower() == ".json", f"{out}: the probe writes a .json file")
         require(not out.exists(), f"{out} exists: give a new file (nothing was written)")
-    text = json.dumps(probe(n, args.device, args.repeats), indent=2) + "\n"
+        require(out.parent.is_dir(), f"{out}: its folder {out.parent} is not a folder")
+    text = json.dumps(probe(n, device, args.repeats), indent=2) + "\n"
     return print_or_write_table(text, args.out)  # any text: printed, or written atomically
 
 

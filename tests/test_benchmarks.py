@@ -1412,6 +1412,8 @@ def test_fused_mlp_probe_is_float64s_mlp_and_refuses_bad_input(tmp_path, capsys)
         (["--n", "100"], "multiple of 64"),
         (["--out", str(out)], "exists"),
         (["--out", str(tmp_path / "p.txt")], ".json"),
+        (["--out", str(out / "under-a-file.json")], "not a folder"),
+        (["--device", "tpu"], "not one of"),
     ):
         assert probe.main(["--device", "cpu", *bad]) == 2
         err = capsys.readouterr().err.strip().splitlines()
