@@ -130,7 +130,7 @@ class TrainConfig:
     """graph: capture the step this many times and replay the copies in turn (each its own
     memory), so a replay never waits behind the previous replay of the same graph (issue
     #17; `benchmarks.graph_relaunch` measures whether that wait exists)."""
-    graph_keys: int = field(default=1, metadata={"min": 1, "max": 8})
+    graph_keys: int = field(default=4, metadata={"min": 1, "max": 8})
     """graph: keep the captured steps of this many keys (sample-buffer capacities, cone,
     compaction), the least recently used put down first, each in its own memory; a capacity
     that turns back to a kept size replays its graph instead of warming up and capturing
