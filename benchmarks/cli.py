@@ -84,9 +84,9 @@ def check_table_out(out: str | None) -> None:
         require(not path.exists(), f"{path} exists: give a new file (nothing was written)")
 
 
-def print_or_write_table(text: str, out: str | None) -> int:
+def print_or_write_table(text: str, out: str | None, quiet: bool = False) -> int:
     """Print `text`, or write it atomically to `out` (checked by `check_table_out`) and
-    print its name. Returns 0."""
+    print its name (not when quiet). Returns 0."""
     if out is None:
         print(text, end="")
         return 0
@@ -95,5 +95,6 @@ def print_or_write_table(text: str, out: str | None) -> int:
             tmp.write_text(text)
     except OSError as e:
         raise InputError(f"{out}: cannot be written ({e.strerror or e})") from None
-    print(out)
+    if not quiet:
+        print(out)
     return 0

@@ -10,22 +10,27 @@ ngp's shapes (no biases), the density MLP (32 -> 64 -> 16, one hidden ReLU layer
 colour MLP (32 -> 64 -> 64 -> 8, two), each both ways, forward and forward+backward, in
 float16 with float32 accumulation, before anything is built on it:
 
-- fused: one Warp kernel a pass, `TILE_M` samples a block (`wp.tile_matmul`, cuBLASDx on a
-  GPU); the backward recomputes the hidden layers from the input rather than reading them, and
-  adds each block's weight gradients into float32 buffers (`wp.tile_atomic_add`);
+- fused: one Warp kernel a pass, `TILE_M` samples a block; the backward recomputes the hidden
+  layers from the input rather than reading them, and adds each block's weight gradients into
+  float32 buffers (`wp.tile_atomic_add`). Two variants on a GPU (`VARIANTS`): `wp.tile_matmul`
+  through cuBLASDx (LTOs compiled on first use) and through Warp's cooperative scalar GEMM;
 - torch: `F.linear` and `relu` in float16 under autograd, as the field runs them.
 
-Per network: each variant's median ms (CUDA events; warm-up excluded) and both ways' largest
-errors against a float64 reference (relative to each output's largest value), or the error
-that stopped it (a tile too large for a block's shared memory is the colour MLP's risk); on
-the CPU the errors only, at a small N: a check, not a timing. Printed as JSON, or written
-atomically to --out (an existing file is refused).
+Per network: torch's medians and each fused variant's (ms, CUDA events, warm-up excluded),
+each one's largest errors against a float64 reference (relative to each output's largest
+value) or the error that stopped it (a tile too large for a block's shared memory is the
+colour MLP's risk), and each variant's first call in seconds (its compile on a cold kernel
+cache); on the CPU the errors only (the scalar variant), at a small N: a check, not a timing.
+Progress on stderr; printed as JSON, or written atomically to --out after every part (an
+existing file is refused at the start), so a run cut off by a time limit leaves what it did.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
+import time
 from itertools import pairwise
 from pathlib import Path
 
@@ -54,7 +59,6 @@ def _masked(g: wp.float32, h: wp.float32):
     return wp.where(h > wp.float32(0.0), g, wp.float32(0.0))
 
 
-@wp.kernel
 def _forward(
     x: wp.array2d(dtype=wp.float16),
     w1: wp.array2d(dtype=wp.float16),
@@ -72,7 +76,6 @@ def _forward(
     wp.tile_store(y, out, offset=(i * TILE_M, 0))
 
 
-@wp.kernel
 def _backward(
     x: wp.array2d(dtype=wp.float16),
     w1: wp.array2d(dtype=wp.float16),
@@ -106,7 +109,6 @@ def _backward(
     wp.tile_atomic_add(gw1, d1)
 
 
-@wp.kernel
 def _forward2(
     x: wp.array2d(dtype=wp.float16),
     w1: wp.array2d(dtype=wp.float16),
@@ -129,7 +131,6 @@ def _forward2(
     wp.tile_store(y, out, offset=(i * TILE_M, 0))
 
 
-@wp.kernel
 def _backward2(
     x: wp.array2d(dtype=wp.float16),
     w1: wp.array2d(dtype=wp.float16),
@@ -174,21 +175,46 @@ def _backward2(
     wp.tile_atomic_add(gw1, d1)
 
 
-def fused_forward(x: torch.Tensor, ws: list[torch.Tensor]) -> torch.Tensor:
+# Each variant's four kernels in a module of their own: `enable_mathdx_gemm` is a module
+# option. No adjoints: the backward is written out, and each tile_matmul's adjoint would be
+# cuBLASDx LTOs to compile too (the last lease's probe spent its 5 minutes compiling).
+VARIANTS = {"scalar": False, "cublasdx": True}  # name -> enable_mathdx_gemm
+_KERNELS: dict[str, dict] = {}
+
+
+def kernels(variant: str) -> dict:
+    """The variant's kernels by name (`VARIANTS`: tile_matmul through cuBLASDx on a GPU, or
+    Warp's cooperative scalar GEMM), made once."""
+    if variant not in _KERNELS:
+        opts = {"enable_mathdx_gemm": VARIANTS[variant]}
+        _KERNELS[variant] = {
+            f.__name__: wp.kernel(
+                f,
+                name=f"{f.__name__.strip('_')}_{variant}",
+                enable_backward=False,
+                module="unique",
+                module_options=opts,
+            )  # fmt: skip
+            for f in (_forward, _backward, _forward2, _backward2)
+        }
+    return _KERNELS[variant]
+
+
+def fused_forward(x: torch.Tensor, ws: list[torch.Tensor], variant: str = "scalar"):
     """x (N, 32) float16 and the (in, out) float16 weights of either network (`SHAPES`) ->
     y (N, out) float32; N a multiple of TILE_M."""
     y = torch.empty(x.shape[0], ws[-1].shape[1], dtype=torch.float32, device=x.device)
-    kernel = _forward if len(ws) == 2 else _forward2
+    kernel = kernels(variant)["_forward" if len(ws) == 2 else "_forward2"]
     launch_tiled(kernel, x.shape[0] // TILE_M, TILE_M, x, [x, *ws, y])
     return y
 
 
-def fused_backward(x, ws, gy) -> list[torch.Tensor]:
+def fused_backward(x, ws, gy, variant: str = "scalar") -> list[torch.Tensor]:
     """`fused_forward`'s gradients for gy (N, out) float16: [gx, gw per weight], float32."""
     dev = x.device
     grads = [torch.empty(x.shape[0], N_IN, dtype=torch.float32, device=dev)]
     grads += [torch.zeros(w.shape, dtype=torch.float32, device=dev) for w in ws]
-    kernel = _backward if len(ws) == 2 else _backward2
+    kernel = kernels(variant)["_backward" if len(ws) == 2 else "_backward2"]
     launch_tiled(kernel, x.shape[0] // TILE_M, TILE_M, x, [x, *ws, gy, *grads])
     return grads
 
@@ -252,44 +278,91 @@ def _max_errors(got, want) -> list[float]:
     return out
 
 
-def probe_network(n: int, widths: list[int], device: str, repeats: int = 20) -> dict:
-    """One network's medians (ms), both ways, forward and forward+backward, and both ways'
-    largest errors against float64 relative to each output's largest value."""
-    x, ws, gy = problem(n, widths, device)
-    want = reference(x, ws, gy)
-    got = [fused_forward(x, ws), *fused_backward(x, ws, gy)]
-    leaves = _torch_leaves(x, ws, True)
-    ty = _torch_step(leaves, gy)
-    tgot = [ty, leaves[0].grad, *(t.grad.t() for t in leaves[1:])]
-    names = ["y", "gx", *(f"gw{k + 1}" for k in range(len(ws)))]
-    res = {
-        "widths": widths,
-        "errors": dict(zip(names, _max_errors(got, want), strict=True)),
-        "torch_errors": dict(zip(names, _max_errors(tgot, want), strict=True)),
-    }
-    if device.startswith("cuda"):
-        plain = _torch_leaves(x, ws, False)
+def _say(text: str, t0: float) -> None:
+    """A progress line on stderr, flushed at once (a lease reads it after a timeout)."""
+    print(f"[{time.perf_counter() - t0:7.1f} s] {text}", file=sys.stderr, flush=True)
+
+
+def probe_variant(x, ws, gy, want, variant: str, repeats: int) -> dict:
+    """One variant of the fused kernels on one problem: its first call's seconds (the compile
+    and load: the kernel cache is cold on a fresh machine), its largest errors against the
+    float64 `want`, and on CUDA its medians (ms), forward and forward+backward."""
+    t = time.perf_counter()
+    got = [fused_forward(x, ws, variant), *fused_backward(x, ws, gy, variant)]
+    if x.is_cuda:
+        torch.cuda.synchronize(x.device)
+    res: dict = {"first_call_s": round(time.perf_counter() - t, 2)}
+    res["errors"] = _max_errors(got, want)
+    if x.is_cuda:
         res["ms"] = {
-            "fused_forward": time_ms(lambda: fused_forward(x, ws), device, repeats),
-            "fused_forward_backward": time_ms(
-                lambda: (fused_forward(x, ws), fused_backward(x, ws, gy)), device, repeats
-            ),
-            "torch_forward": time_ms(lambda: _torch_step(plain, None), device, repeats),
-            "torch_forward_backward": time_ms(lambda: _torch_step(leaves, gy), device, repeats),
+            "forward": time_ms(lambda: fused_forward(x, ws, variant), str(x.device), repeats),
+            "forward_backward": time_ms(
+                lambda: (fused_forward(x, ws, variant), fused_backward(x, ws, gy, variant)),
+                str(x.device),
+                repeats,
+            ),  # fmt: skip
         }
     return res
 
 
-def probe(n: int, device: str, repeats: int = 20) -> dict:
-    """Both networks (`SHAPES`); a network whose kernels fail (to compile, to launch) is
-    recorded with its error, and the other still runs."""
+def probe_network(
+    n: int, widths: list[int], device: str, repeats: int = 20, variants=None, report=None
+) -> dict:
+    """One network: torch's float16 MLP and each fused variant (default: both on CUDA, the
+    scalar one on the CPU, where cuBLASDx does not apply), each one's largest errors against
+    float64 relative to each output's largest value, and on CUDA the medians (ms), forward
+    and forward+backward. A variant that fails (to compile, to launch) is recorded with its
+    error. report(res) is called after each part (the probe's partial results)."""
+    variants = variants or (list(VARIANTS) if device.startswith("cuda") else ["scalar"])
+    report = report or (lambda res: None)
+    x, ws, gy = problem(n, widths, device)
+    want = reference(x, ws, gy)
+    names = ["y", "gx", *(f"gw{k + 1}" for k in range(len(ws)))]
+    leaves = _torch_leaves(x, ws, True)
+    ty = _torch_step(leaves, gy)
+    tgot = [ty, leaves[0].grad, *(t.grad.t() for t in leaves[1:])]
+    res: dict = {
+        "widths": widths,
+        "torch_errors": dict(zip(names, _max_errors(tgot, want), strict=True)),
+    }
+    if device.startswith("cuda"):
+        plain = _torch_leaves(x, ws, False)
+        res["torch_ms"] = {
+            "forward": time_ms(lambda: _torch_step(plain, None), device, repeats),
+            "forward_backward": time_ms(lambda: _torch_step(leaves, gy), device, repeats),
+        }
+    report(res)
+    for variant in variants:
+        try:
+            part = probe_variant(x, ws, gy, want, variant, repeats)
+            part["errors"] = dict(zip(names, part["errors"], strict=True))
+        except Exception as e:  # noqa: BLE001 - a probe records what stopped it
+            part = {"error": f"{type(e).__name__}: {e}".splitlines()[0]}
+        res[variant] = part
+        report(res)
+    return res
+
+
+def probe(n: int, device: str, repeats: int = 20, out: Path | None = None) -> dict:
+    """Both networks (`SHAPES`), a network or variant that fails recorded with its error and
+    the rest still run; progress on stderr, and with `out` the results so far rewritten
+    there (atomically) after each part, so a run cut off by a time limit leaves them."""
     require(n > 0 and n % TILE_M == 0, f"--n must be a positive multiple of {TILE_M}, got {n}")
     res: dict = {"n": n, "device": device, "tile_m": TILE_M}
+    t0 = time.perf_counter()
+
+    def report(part: dict, name: str) -> None:
+        res[name] = part
+        done = [k for k in (*VARIANTS, "torch_ms") if k in part]
+        _say(f"{name}: {', '.join(done) or 'torch errors'} done", t0)
+        if out is not None:
+            print_or_write_table(json.dumps(res, indent=2) + "\n", str(out), quiet=True)
+
     for name, widths in SHAPES.items():
         try:
-            res[name] = probe_network(n, widths, device, repeats)
+            probe_network(n, widths, device, repeats, report=lambda p, k=name: report(p, k))
         except Exception as e:  # noqa: BLE001 - a probe records what stopped it
-            res[name] = {"widths": widths, "error": f"{type(e).__name__}: {e}".splitlines()[0]}
+            report({"widths": widths, "error": f"{type(e).__name__}: {e}".splitlines()[0]}, name)
     return res
 
 
@@ -311,8 +384,12 @@ def run(args: argparse.Namespace) -> int:
         require(out.suffix.lower() == ".json", f"{out}: the probe writes a .json file")
         require(not out.exists(), f"{out} exists: give a new file (nothing was written)")
         require(out.parent.is_dir(), f"{out}: its folder {out.parent} is not a folder")
-    text = json.dumps(probe(n, device, args.repeats), indent=2) + "\n"
-    return print_or_write_table(text, args.out)  # any text: printed, or written atomically
+    res = probe(n, device, args.repeats, out)
+    if out is None:
+        print(json.dumps(res, indent=2))
+    else:
+        print(out)
+    return 0
 
 
 def main(argv: list[str] | None = None, prog: str | None = None) -> int:

@@ -1397,16 +1397,24 @@ def test_fused_mlp_probe_is_float64s_mlp_and_refuses_bad_input(tmp_path, capsys)
     that is no .json file is one line and exit code 2, and an existing file stays as it was."""
     from benchmarks import fused_mlp_probe as probe
 
-    res = probe.probe(128, "cpu")
-    assert set(res["density"]["errors"]) == {"y", "gx", "gw1", "gw2"}
-    assert set(res["colour"]["errors"]) == {"y", "gx", "gw1", "gw2", "gw3"}
-    for net in ("density", "colour"):
-        for key, err in res[net]["errors"].items():
-            assert err < 2e-3 and err <= 2 * res[net]["torch_errors"][key], (net, key, res)
     out = tmp_path / "p.json"
     assert probe.main(["--device", "cpu", "--n", "128", "--out", str(out)]) == 0
     before = out.read_text()
-    assert json.loads(before)["n"] == 128 and "ms" not in json.loads(before)  # no CPU timing
+    res = json.loads(before)
+    assert res["n"] == 128 and "torch_ms" not in res["density"]  # no CPU timing
+    assert set(res["density"]["scalar"]["errors"]) == {"y", "gx", "gw1", "gw2"}
+    assert set(res["colour"]["scalar"]["errors"]) == {"y", "gx", "gw1", "gw2", "gw3"}
+    for net in ("density", "colour"):
+        assert "cublasdx" not in res[net] and "ms" not in res[net]["scalar"]
+        for key, err in res[net]["scalar"]["errors"].items():
+            assert err < 2e-3 and err <= 2 * res[net]["torch_errors"][key], (net, key, res)
+    progress = capsys.readouterr().err
+    assert "density: scalar done" in progress and "colour: scalar done" in progress
+    # cuBLASDx is a module option: each variant's kernels are their own, without adjoints
+    both = [probe.kernels(v)["_backward2"] for v in probe.VARIANTS]
+    assert both[0].module is not both[1].module
+    assert [k.module.options["enable_mathdx_gemm"] for k in both] == [False, True]
+    assert not any(k.options.get("enable_backward", True) for k in both)
     capsys.readouterr()
     for bad, words in (
         (["--n", "100"], "multiple of 64"),
