@@ -22,7 +22,8 @@ LABEL=DIR. Without a label a row is named by the folder's last two parts, SCENE/
 - error left: rotation error the poses still have (°, perturbed runs);
 - largest turn: the largest correction any pose row had at the end (°, refined runs): a row
   that ran away stands out (gpu_s53's lattice at 1°: 9.5° where the rest stay under 0.7°);
-- settled: the budget fraction at which the windows lengthened (`refine_settle_px`), from
+- settled: the budget fraction at which the windows lengthened (`refine_settle_px`; ↺: the
+  field started afresh there, `refine_restart`), from
   the run's config.json.
 With --phases, where a run's step time goes instead: ms per step between consecutive --at
 times' curve points (e.g. `--phases --at 1 5 12 30 60`), the first point from which most
@@ -63,10 +64,12 @@ def load_run(folder: str | Path) -> dict[str, Any]:
     run["settled_at"] = None
     for conf in sorted(Path(folder).glob("runs/*/config.json"))[:1]:
         try:
-            calib = json.loads(conf.read_text()).get("self_calibration") or {}
+            saved = json.loads(conf.read_text())
+            calib = saved.get("self_calibration") or {}
         except (json.JSONDecodeError, AttributeError) as e:
             raise InputError(f"{conf}: not a run's config.json ({e})") from None
         run["settled_at"] = (calib.get("poses") or {}).get("settled_at")
+        run["restarted_at"] = (saved.get("field_restart") or {}).get("progress")
     return run
 
 
@@ -108,7 +111,8 @@ def row(label: str, run: dict, at: list[float], base: dict | None) -> list[str]:
     for key, fmt in (("pose_error_deg", ".3f"), ("pose_correction_max_deg", ".2f")):
         v = last.get(key)
         cells.append(DASH if v is None else f"{v:{fmt}}°")
-    cells.append(_num(run.get("settled_at"), ".0%"))
+    restart = run.get("restarted_at")  # refine_restart's new field
+    cells.append(_num(run.get("settled_at"), ".0%") + ("" if restart is None else " ↺"))
     return cells
 
 

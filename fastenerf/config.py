@@ -191,6 +191,11 @@ class TrainConfig:
     """Stop learning the poses once they settle (refine_settle_px): the corrections stay as
     they are and the rays leave the autograd graph, so the rest of the run no longer pays for
     the pose gradient (the hash grid's position gradient, the rays' backward)."""
+    refine_restart: bool = False
+    """Once the poses settle (refine_settle_px), start the field afresh on them (a new field,
+    occupancy grid and optimiser; the learning rate, occupancy and cone schedules over the
+    budget left, `field_restart`): the first field has learnt the wrong poses' blur. Implies
+    refine_freeze (a new field's gradient would move the settled poses); one GPU only."""
     refine_reset_deg: float = field(default=0.0, metadata={"min": 0.0, "max": 180.0})
     """While refining poses, every 1 % of the budget a pose row whose correction turns
     further than this (degrees) is put back to no correction, its optimiser state cleared
@@ -294,6 +299,8 @@ class TrainConfig:
         _check(ok, where, "refine_settle_px", "needs refine_poses (it watches the corrections)")
         ok = self.refine_poses or not self.refine_freeze
         _check(ok, where, "refine_freeze", "needs refine_poses (it stops the pose learning)")
+        ok = self.refine_poses or not self.refine_restart
+        _check(ok, where, "refine_restart", "needs refine_poses (it restarts when they settle)")
         per_pose = self.refine_knots == 0 and not self.refine_shared
         per_pose = per_pose and self.refine_shared_until == 0
         ok = self.refine_reset_deg == 0 or (self.refine_poses and per_pose)
@@ -338,8 +345,11 @@ class TrainConfig:
                 c.log_eps = 1e-5 if real else 0.1
         cpu_ngp = c.backend == "ngp" and not str(device).startswith("cuda")
         c._resolve_windows(scene.n_views, real, cpu_ngp)
-        ok = not c.refine_freeze or c.refine_settle_px is not None
+        c.refine_freeze = c.refine_freeze or c.refine_restart
         why = "needs refine_settle_px here (it says when the poses settled), e.g. 0.3"
+        ok = not c.refine_restart or c.refine_settle_px is not None
+        _check(ok, "train config", "refine_restart", why)
+        ok = not c.refine_freeze or c.refine_settle_px is not None
         _check(ok, "train config", "refine_freeze", why)
         if c.neg_ratio is None:
             c.neg_ratio = 0.05 if real else 0.1

@@ -302,6 +302,8 @@ def data_parallel_trainer(
     from .run import CHECKPOINT
     from .train import Trainer
 
+    if cfg.refine_restart:  # a new field mid-run would leave the ranks' gradient hooks behind
+        raise InputError("refine_restart: one GPU only (not with --data-parallel)")
     if not resume and (Path(out_dir) / CHECKPOINT).exists():  # every rank refuses, not only 0
         raise InputError(
             f"{out_dir}: already holds a training run; pass --resume to "

@@ -155,6 +155,17 @@ class SelfCalibration:
             pc.window(progress)
             pc.guard(progress, pc.optimizer or self.optimizer)
 
+    def settled(self) -> bool:
+        """Whether the poses have settled (`refine_settle_px`; False without refinement or
+        without the settle)."""
+        pc = self.pose_cal
+        return pc is not None and pc.settle is not None and pc.settle.settled_at is not None
+
+    def use_field(self, field: Field) -> None:
+        """Weight and hold `field` from now on (a new field: `field_restart`)."""
+        if self.pose_cal is not None:
+            self.pose_cal.field = field
+
     def param_groups(self) -> list[dict]:
         """Every optimiser group (poses, thresholds) of both optimisers."""
         extra = [] if self.pose_optimizer is None else self.pose_optimizer.param_groups

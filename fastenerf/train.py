@@ -29,6 +29,7 @@ from .config import TrainConfig
 from .data.formats.native import Scene
 from .device_step import FiniteGuard, PendingStats, supports_device_guard
 from .errors import InputError
+from .field_restart import RestartClock, restart_due
 from .fields import Field, make_field
 from .graph_step import graphed_step
 from .hooks import Hook, default_hooks
@@ -83,6 +84,7 @@ class Trainer:
         self.perturbation, self.smoothing = d.perturbation, d.smoothing
         self.field: Field = make_field(self.cfg.backend, scene.config, self.cfg).to(self.device)
         self.optimizer = field_adam(self.field, self.cfg, self.device)
+        self.clock = RestartClock()  # where the field's schedules count from
         self.selfcal = self._make_self_calibration()  # None unless refine/estimate is on
         self.batch_size = self._make_batch_size()  # None unless samples_per_step is set
         bg = scene_background(scene.config)
@@ -146,6 +148,7 @@ class Trainer:
         device where the step cannot be captured (field, self-calibration), device to plain
         without fused Adam."""
         self.flush_stats()
+        self.step_mode_asked = mode
         want = mode if mode != "auto" else ("graph" if self.device.type == "cuda" else "plain")
         self.graph = None
         if want in ("device", "graph") and supports_device_guard(self.optimizer):
@@ -189,6 +192,22 @@ class Trainer:
         args = (thresholds, self.field, true_c2w, measured_ratio(self.scene, self.cfg), turn)
         return SelfCalibration(self.cfg, self.sampler, *args)
 
+    def restart_field(self) -> None:
+        """A new field and optimiser from this step on, their schedules counted from here
+        (`field_restart`; refine_restart once the poses settle); the step mode asked for last
+        is set up again for them."""
+        self.flush_stats()
+        with torch.random.fork_rng(devices=[]):  # the first field's init; the run's stream stays
+            torch.manual_seed(self.cfg.seed)
+            field = make_field(self.cfg.backend, self.scene.config, self.cfg)
+        self.field = field.to(self.device)
+        self._observe_training_cameras()
+        self.optimizer = field_adam(self.field, self.cfg, self.device)
+        if self.selfcal is not None:
+            self.selfcal.use_field(self.field)
+        self.clock = RestartClock(self.step_count, self.progress(), self.clock.restarts + 1)
+        self.set_step_mode(self.step_mode_asked)
+
     def _make_batch_size(self) -> BatchSize | None:
         """The pixels-per-step rule of samples_per_step (`batch_size`), between one quantum
         (or the windows a step draws) and rays_per_step; None without the option."""
@@ -216,13 +235,13 @@ class Trainer:
     def lr_at(self, step: int) -> float:
         """Learning rate for `step`: warm-up, then constant or exponential decay to lr_final
         (held at lr until the budget fraction lr_decay_start, then decayed over the rest)."""
-        c = self.cfg
+        c, clock = self.cfg, self.clock
         lr = c.lr
         if c.lr_final is not None and c.lr_final != c.lr:
-            s = c.lr_decay_start
-            lr = c.lr * (c.lr_final / c.lr) ** max(0.0, (self.progress(step) - s) / (1.0 - s))
+            s, p = c.lr_decay_start, clock.local_progress(self.progress(step))
+            lr = c.lr * (c.lr_final / c.lr) ** max(0.0, (p - s) / (1.0 - s))
         if c.lr_warmup_steps > 0:
-            lr *= min(1.0, (step + 1) / c.lr_warmup_steps)
+            lr *= min(1.0, (clock.local_step(step) + 1) / c.lr_warmup_steps)
         return lr
 
     def progress(self, step: int | None = None) -> float:
@@ -258,14 +277,17 @@ class Trainer:
         with self.lock:
             t_begin = time.perf_counter()
             lr = self.lr_at(self.step_count)
+            if self.selfcal is not None:
+                self.selfcal.before_step(self.progress(), lr / self.cfg.lr)
+                if restart_due(self.cfg, self.selfcal, self.clock):
+                    self.restart_field()
+                    lr = self.lr_at(self.step_count)
             set_lr(self.optimizer, lr)
             self.field.train()
             # The named ranges are what benchmarks.profile_step attributes time to (a range
             # costs ~1 µs when no profiler runs).
-            if self.selfcal is not None:
-                self.selfcal.before_step(self.progress(), lr / self.cfg.lr)
             with record_function("grid_update"):
-                self.field.update(self.step_count)
+                self.field.update(self.clock.local_step(self.step_count))
             with record_function("sample_rays"):
                 if self.batch_size is not None and self.sampler.block_done():
                     n = self.batch_size.decide(self.step_count, self.sampler.pixels)

@@ -90,6 +90,8 @@ def trainer_state(tr: Trainer) -> dict[str, Any]:
     }
     if tr.selfcal is not None:  # learnt poses / thresholds (issue #20)
         state["self_calibration"] = tr.selfcal.state_dict()
+    if tr.clock.restarts:  # the field is a restarted one (refine_restart): its schedules' start
+        state["restart"] = tr.clock.state_dict()
     if tr.batch_size is not None:  # the samples per ray its next decisions read
         state["batch_size"] = tr.batch_size.state_dict()
     return state
@@ -105,6 +107,7 @@ def progress_record(tr: Trainer, finished: bool) -> dict[str, Any]:
         "last_eval_psnr": tr.last_eval_psnr,
         "finished": finished,
         **({"self_calibration": tr.selfcal.stats()} if tr.selfcal is not None else {}),
+        **({"field_restart": tr.clock.state_dict()} if tr.clock.restarts else {}),
     }
 
 
@@ -161,6 +164,7 @@ def restore(tr: Trainer, ck: dict) -> None:
             fit_state(tr.optimizer, tr.field.pad_legacy)
         if tr.selfcal is not None:
             tr.selfcal.load_state_dict(ck["self_calibration"])
+        tr.clock.load_state_dict(ck.get("restart"))
         saved = ck["sampler"]
         state = {k: _windows_loaded(saved[k]) for k in WINDOW_STATES if k in saved}
         state.update(gen=saved["gen"], position=int(saved.get("position", 0)))

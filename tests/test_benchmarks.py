@@ -1048,11 +1048,11 @@ def test_gpu_stage_parts_pieces_rejoin_to_the_same_warp_so(tmp_path):
 def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
     """run_table: PSNR at the asked times ("—" where none was scheduled), Δ against the same
     scene's --base row, step time, samples, buffer slots, compaction, error left, the
-    largest correction and settled_at from the run's config.json; --out is written once, an
-    existing one refused and left alone."""
+    largest correction and settled_at from the run's config.json (↺ where the field restarted
+    there); --out is written once, an existing one refused and left alone."""
     from benchmarks import run_table
 
-    def result(folder, psnrs, settled, **last):
+    def result(folder, psnrs, settled, restart=None, **last):
         pts = [
             {"target_s": t, "train_s": t + 0.01, "psnr": v, "step": 100 * t}
             for t, v in zip((5.0, 10.0, 60.0), psnrs, strict=True)
@@ -1064,7 +1064,7 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
         conf = folder / "runs" / "s-ngp" / "config.json"
         conf.parent.mkdir(parents=True)
         calib = None if settled is None else {"poses": {"settled_at": settled}}
-        conf.write_text(json.dumps({"self_calibration": calib}))
+        conf.write_text(json.dumps({"self_calibration": calib, "field_restart": restart}))
 
     out = tmp_path / "res" / "s"
     result(out / "none0", (30.0, 31.0, 32.0), None, samples_per_step=9e5)
@@ -1081,6 +1081,8 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
         pose_error_deg=0.0871,
         pose_correction_max_deg=9.4981,
     )
+    restart = {"step": 300, "progress": 0.31, "restarts": 1}  # refine_restart's new field
+    result(out / "rs2", (25.0, 26.0, 30.5), 0.31, restart=restart)
     args = [str(out / "none0"), str(out / "ref2"), "--at", "5", "15", "60", "--base", "none0"]
     assert run_table.main(args) == 0
     lines = capsys.readouterr().out.strip().splitlines()
@@ -1091,6 +1093,8 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
         "| s/ref2 | 25.00 | — | 29.50 | -2.50 | 6.00 | 1.40 | 2.10 | 1.80 | 7 (12 back) | 1.00 "
         "| 0.087° | 9.50° | 27% |"
     )
+    assert run_table.main([str(out / "rs2")]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1].endswith("| 31% ↺ |")
     table = tmp_path / "t.md"
     assert run_table.main([f"mine={out / 'ref2'}", "--out", str(table)]) == 0
     assert "| mine | 25.00 | 26.00 | — | — | 29.50 | — |" in table.read_text()

@@ -267,6 +267,27 @@ def test_graph_body_takes_the_plain_paths_steps_through_refine_freeze(scene, tmp
     assert_same_tensor(want, got, "delta")
 
 
+def test_graph_body_takes_the_plain_paths_steps_through_a_field_restart(scene, tmp_path):
+    """refine_restart on the graphed body: the step where the poses settle builds a new
+    field, and the graphed step is made again for it (its own buffers and optimiser); the
+    losses are the plain path's through the restart and the new fields end alike."""
+    kw = dict(steps=12, refine_poses=True, refine_start=0.0, refine_warmup=0.0)
+    kw.update(refine_settle_px=1e3, refine_restart=True)
+    plain = make(scene, tmp_path / "plain", "plain", **kw)
+    a = losses(plain, 12)
+    graph = make(scene, tmp_path / "graph", "graph", **kw)
+    first = graph.graph
+    b = losses(graph, 12)
+    assert_same_losses(a, b)
+    assert plain.clock == graph.clock and graph.clock.restarts == 1
+    assert graph.step_mode == "graph" and graph.graph is not first
+    assert graph.graph.field is graph.field
+    got = graph.field.state_dict()
+    for k, want in plain.field.state_dict().items():
+        if isinstance(want, torch.Tensor) and want.is_floating_point():
+            assert_same_tensor(want, got[k], k)
+
+
 def test_graph_body_takes_the_plain_paths_steps_through_refine_diffuse(scene, tmp_path):
     """refine_diffuse_until on the graphed body: the colour's mask changes in place where
     the hold ends (here at the settle), and the body's steps are the plain path's through it."""

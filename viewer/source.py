@@ -281,6 +281,9 @@ class ViewSource:
         disk. True when the field was replaced."""
         if self.train_thread is not None:
             self.train_thread.poll()
+        if self.trainer is not None and self.trainer.field is not self.field:
+            self.field = self.trainer.field  # a new field (refine_restart)
+            return True
         if self.watcher is not None:
             f = self.watcher.newer_field()
             if self.watcher.metrics_changed():

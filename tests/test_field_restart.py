@@ -1,0 +1,157 @@
+"""refine_restart (issue #20): a new field once the poses settle, its schedules from there."""
+
+import json
+
+import pytest
+import torch
+
+from fastenerf.config import PerturbConfig
+from fastenerf.data.formats.native import load_scene
+from fastenerf.data_parallel import data_parallel_trainer
+from fastenerf.errors import InputError
+from fastenerf.field_restart import RestartClock
+from fastenerf.train import Trainer
+from tests.test_train import tiny_cfg
+
+# the poses settle at the second look (step 2 of 40: every movement is under 1e3 px)
+REFINE = dict(
+    refine_poses=True,
+    refine_start=0.0,
+    refine_warmup=0.0,
+    refine_gate=0.0,
+    refine_settle_px=1e3,
+    steps=40,
+    lr_warmup_steps=4,
+)
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene):
+    return load_scene(tiny_scene)
+
+
+def cfg(backend: str, **kw):
+    return tiny_cfg(backend, perturb=PerturbConfig(pose_error_deg=1.0), **{**REFINE, **kw})
+
+
+def params(field) -> dict:
+    """The field's tensors (weights and buffers), copied."""
+    state = field.state_dict().items()
+    return {k: v.detach().clone() for k, v in state if isinstance(v, torch.Tensor)}
+
+
+def test_the_clock_counts_the_fields_own_steps_and_budget():
+    c = RestartClock()
+    assert c.local_step(7) == 7 and c.local_progress(0.3) == 0.3  # no restart: the run's
+    c = RestartClock(step=10, progress=0.4, restarts=1)
+    assert (c.local_step(10), c.local_step(15)) == (0, 5)
+    assert c.local_progress(0.4) == 0.0 and c.local_progress(0.7) == pytest.approx(0.5)
+    assert c.local_progress(1.0) == 1.0 and c.local_progress(0.2) == 0.0
+    assert RestartClock(5, 1.0, 1).local_progress(1.0) == 1.0  # nothing left: done
+    again = RestartClock()
+    again.load_state_dict(c.state_dict())
+    assert again == c
+    again.load_state_dict(None)  # a checkpoint from before restarts
+    assert again == RestartClock()
+
+
+@pytest.mark.parametrize("backend", ["vanilla", "ngp"])
+def test_a_restart_at_the_settle_trains_a_new_field_from_its_start(scene, tmp_path, backend):
+    """At the step where the poses settle a new field is built (the first field's initial
+    weights: same seed) with its own optimiser; the learning rate warms up again and decays
+    over the budget left, the occupancy schedule counts the new field's steps, the poses
+    freeze, and the run goes on to its budget; config.json and progress.json say where."""
+    tr = Trainer(scene, cfg(backend, refine_restart=True), tmp_path / "r")
+    init = params(tr.field)
+    assert tr.cfg.refine_freeze  # implied
+    fields, lrs = [], []
+    for _ in range(6):
+        tr.step()
+        fields.append(tr.field)
+        lrs.append(tr.history[-1]["lr"])
+    tr.flush_stats()
+    assert fields[1] is fields[0] and all(f is fields[2] for f in fields[3:])
+    assert fields[2] is not fields[1] and tr.clock == RestartClock(2, 0.05, 1)
+    new = params(tr.field)
+    assert lrs[:2] == pytest.approx([tr.cfg.lr / 4, tr.cfg.lr / 2])
+    assert lrs[2:5] == pytest.approx([tr.cfg.lr / 4, tr.cfg.lr / 2, 3 * tr.cfg.lr / 4])
+    assert tr.selfcal.pose_cal.frozen and tr.selfcal.pose_cal.field is tr.field
+    if backend == "ngp":
+        assert tr.field.sampler.train_step == 3  # the new field's fourth step
+    assert set(new) == set(init)
+    tr.run(progress=False)
+    assert tr.step_count == 40 and tr.failure is None and tr.clock.restarts == 1
+    conf = json.loads((tmp_path / "r" / "config.json").read_text())
+    assert conf["field_restart"] == {"step": 2, "progress": 0.05, "restarts": 1}
+    assert json.loads((tmp_path / "r" / "progress.json").read_text())["field_restart"]["step"] == 2
+
+
+@pytest.mark.parametrize("backend", ["vanilla", "ngp"])
+def test_a_restarted_field_starts_where_the_first_one_did(scene, tmp_path, backend):
+    """`restart_field` builds the first field's initial weights again (the run's seed; the
+    run's own random stream left where it was), not the trained ones: nothing is carried
+    over; and a new optimiser with no moments."""
+    tr = Trainer(scene, cfg(backend), tmp_path / "r")
+    init = params(tr.field)
+    tr.step()
+    tr.step()
+    trained = params(tr.field)
+    assert any(not torch.equal(init[k], trained[k]) for k in init)
+    rng = torch.get_rng_state()
+    tr.restart_field()
+    assert torch.equal(rng, torch.get_rng_state())
+    assert all(torch.equal(init[k], v) for k, v in params(tr.field).items())
+    assert not tr.optimizer.state
+    assert {id(p) for g in tr.optimizer.param_groups for p in g["params"]} == {
+        id(p) for p in tr.field.parameters() if p.requires_grad
+    }
+
+
+def test_a_run_checkpointed_after_its_restart_resumes_exactly(scene, tmp_path):
+    """A checkpoint after the restart holds the clock: the resumed run takes the same steps
+    (the same learning rates, the new field's schedules) as one that never stopped."""
+    c = cfg("vanilla", refine_restart=True, steps=12)
+    whole = Trainer(scene, c, tmp_path / "whole")
+    whole.run(progress=False)
+    part = Trainer(scene, c, tmp_path / "part")
+    for _ in range(5):
+        part.step()
+    part.save_checkpoint()
+    del part
+    resumed = Trainer(scene, c, tmp_path / "part", resume=True)
+    assert resumed.clock == whole.clock and whole.clock.restarts == 1 and whole.clock.step < 5
+    resumed.run(progress=False)
+    a, r = params(whole.field), params(resumed.field)
+    assert all(torch.equal(a[k], r[k]) for k in a)
+    assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
+
+
+def test_refine_restart_is_checked(scene, tmp_path):
+    """One-line errors: without refine_poses, without a settle tolerance (a CPU run leaves
+    refine_settle_px off) and with several GPUs; and a run without it never restarts."""
+    with pytest.raises(InputError, match="'refine_restart' needs refine_poses"):
+        tiny_cfg("vanilla", refine_restart=True).validate()
+    c = tiny_cfg("vanilla", refine_poses=True, refine_restart=True)
+    with pytest.raises(InputError, match="'refine_restart' needs refine_settle_px"):
+        c.resolved(scene.config, "cpu")
+    with pytest.raises(InputError, match="refine_restart: one GPU only"):
+        data_parallel_trainer(scene, cfg("vanilla", refine_restart=True), tmp_path / "dp", False)
+    assert not (tmp_path / "dp").exists()
+    tr = Trainer(scene, cfg("vanilla", steps=8), tmp_path / "no")
+    first = tr.field
+    tr.run(progress=False)
+    assert tr.field is first and tr.clock.restarts == 0
+    assert json.loads((tmp_path / "no" / "config.json").read_text())["field_restart"] is None
+
+
+def test_the_viewer_follows_a_restarted_field(scene, tmp_path):
+    """A live view of a trainer shows its field after a restart: the next poll hands the new
+    field over (True once), as a reloaded run's does."""
+    from fastenerf.viewer.source import ViewSource
+
+    tr = Trainer(scene, cfg("vanilla", refine_restart=True), tmp_path / "r")
+    src = ViewSource.from_field(tr.field, scene, trainer=tr)
+    assert src.poll() is False
+    tr.restart_field()
+    assert src.poll() is True and src.field is tr.field
+    assert src.poll() is False
