@@ -3,7 +3,9 @@
 #
 #   bash benchmarks/gpu_poll.sh RESULTS SECONDS
 #
-# Waits up to SECONDS for RESULTS/all.done (or every RESULTS/*/all.done), prints the end of the
+# Waits up to SECONDS for RESULTS/all.done (or, in a folder of lists with no job's
+# progress.log of its own, every RESULTS/*/all.done: a job's lists finish one by one before
+# the job does), prints the end of the
 # progress logs, then packs RESULTS' JSON, JSON lines (the runs' metrics.jsonl: samples marched
 # and used, per logged step), gzipped traces (profile_step --trace), Markdown and logs (no
 # checkpoints, no partial.tgz)
@@ -17,6 +19,7 @@ set -u
 RESULTS=$(realpath "$1"); end=$(( $(date +%s) + $2 ))
 done_yet() {
     [ -e "$RESULTS/all.done" ] && return 0
+    [ -e "$RESULTS/progress.log" ] && return 1
     local d n=0
     for d in "$RESULTS"/*/; do [ -e "$d/all.done" ] || return 1; n=$((n + 1)); done
     [ "$n" -gt 0 ]

@@ -881,8 +881,8 @@ def test_gpu_runs60_skips_a_scene_whose_data_never_arrives(tmp_path):
 
 def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
     """gpu_poll.sh: once every list is done, RESULTS' JSON (lines too, gzipped traces), Markdown
-    and logs go to $OUT/res.tgz, checkpoints left out; bad arguments are one line and exit
-    code 2."""
+    and logs go to $OUT/res.tgz, checkpoints left out; in a job's folder only the job's own
+    all.done ends the wait; bad arguments are one line and exit code 2."""
     import tarfile
 
     script = Path(__file__).parents[1] / "benchmarks" / "gpu_poll.sh"
@@ -908,6 +908,17 @@ def test_gpu_poll_packs_results_without_checkpoints(tmp_path):
     assert "o20/a/plant/none0/metrics.jsonl" in names
     assert "o20/a/plant/none0/trace.json.gz" in names
     assert not any(n.endswith(".pt") for n in names)
+    # a job's own folder (its progress.log): a finished list is not the job's end
+    (res / "progress.log").write_text("[00:00:00] start\n")
+    r = subprocess.run(
+        ["bash", str(script), str(res), "0"], capture_output=True, text=True, env=env
+    )
+    assert r.returncode == 0 and "still running" in r.stdout, r.stderr
+    (res / "all.done").touch()
+    r = subprocess.run(
+        ["bash", str(script), str(res), "0"], capture_output=True, text=True, env=env
+    )
+    assert "all done" in r.stdout
     for args in ([], [str(tmp_path / "nothing"), "5"], [str(res), "soon"]):
         r = subprocess.run(["bash", str(script), *args], capture_output=True, text=True, env=env)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1
