@@ -69,7 +69,8 @@ def load_run(folder: str | Path) -> dict[str, Any]:
         except (json.JSONDecodeError, AttributeError) as e:
             raise InputError(f"{conf}: not a run's config.json ({e})") from None
         run["settled_at"] = (calib.get("poses") or {}).get("settled_at")
-        run["restarted_at"] = (saved.get("field_restart") or {}).get("progress")
+        restart = saved.get("field_restart") or {}  # made, or declined (no restarts)
+        run["restarted_at"] = restart.get("progress") if restart.get("restarts") else None
     return run
 
 

@@ -194,8 +194,14 @@ class TrainConfig:
     refine_restart: bool = False
     """Once the poses settle (refine_settle_px), start the field afresh on them (a new field,
     occupancy grid and optimiser; the learning rate, occupancy and cone schedules over the
-    budget left, `field_restart`): the first field has learnt the wrong poses' blur. Implies
-    refine_freeze (a new field's gradient would move the settled poses); one GPU only."""
+    budget left, `field_restart`): the first field has learnt the wrong poses' blur. Only
+    where the given poses were off (refine_restart_deg). Implies refine_freeze (a new field's
+    gradient would move the settled poses); one GPU only."""
+    refine_restart_deg: float = field(default=0.1, metadata={"min": 0.0, "max": 180.0})
+    """refine_restart only where the given poses were off by more than this mean turn
+    (degrees): the motion prior's (smooth_poses; an exact path's is ~1e-14) or, without it,
+    the corrections' at the settle. Below it the restart is declined: a field trained on poses
+    that close has little blur to shed, and a restart would cost the budget before it."""
     refine_reset_deg: float = field(default=0.0, metadata={"min": 0.0, "max": 180.0})
     """While refining poses, every 1 % of the budget a pose row whose correction turns
     further than this (degrees) is put back to no correction, its optimiser state cleared

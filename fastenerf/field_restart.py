@@ -22,6 +22,7 @@ class RestartClock:
     step: int = 0
     progress: float = 0.0
     restarts: int = 0
+    declined: bool = False  # the poses settled close to the given ones: no restart
 
     def local_step(self, step: int) -> int:
         """The field's own step count at trainer step `step`."""
@@ -46,11 +47,20 @@ class RestartClock:
         self.step = int(state.get("step", 0))
         self.progress = float(state.get("progress", 0.0))
         self.restarts = int(state.get("restarts", 0))
+        self.declined = bool(state.get("declined", False))
 
 
 def restart_due(cfg, selfcal, clock: RestartClock) -> bool:
-    """True when `cfg.refine_restart` asks for a new field and the poses of `selfcal` (the
-    run's `SelfCalibration`, or None) have settled since the field was built."""
-    if not getattr(cfg, "refine_restart", False) or selfcal is None or clock.restarts:
+    """True when `cfg.refine_restart` asks for a new field now: the poses of `selfcal` (the
+    run's `SelfCalibration`, or None) have settled, no restart was made or declined yet, and
+    the given poses were off by more than `cfg.refine_restart_deg` (mean turn: the motion
+    prior's, or the corrections'); where they were not, the restart is declined for good
+    (`clock.declined`): a field trained on poses that close has little blur to shed."""
+    if not getattr(cfg, "refine_restart", False) or selfcal is None:
         return False
-    return selfcal.settled()
+    if clock.restarts or clock.declined or not selfcal.settled():
+        return False
+    if selfcal.given_turn_deg() <= cfg.refine_restart_deg:
+        clock.declined = True
+        return False
+    return True

@@ -108,7 +108,7 @@ class PoseCalibration:
         true_c2w: torch.Tensor | None = None,
         prior_turn_deg: float | None = None,
     ):
-        self.cfg, self.field = cfg, field
+        self.cfg, self.field, self.prior_turn_deg = cfg, field, prior_turn_deg
         row_adam = cfg.refine_optimizer == "row-adam"
         self.gate = row_gate(cfg, prior_turn_deg) if row_adam else 0.0
         self.decay = cfg.refine_defaults()[1]
@@ -164,6 +164,15 @@ class PoseCalibration:
         was = self.sharing
         self.sharing = progress < self.cfg.refine_shared_until
         return was and not self.sharing
+
+    def given_turn_deg(self) -> float:
+        """How far off the given poses were, as a mean turn (degrees): the motion prior's
+        (smooth_poses) where there is one, else the corrections' now (one host read)."""
+        if self.prior_turn_deg is not None:
+            return float(self.prior_turn_deg)
+        with torch.no_grad():
+            turns = self.refiner.corrections()[self.refiner.used, :3]
+            return float(torch.rad2deg(turns.double().norm(dim=1)).mean())
 
     def window(self, progress: float) -> None:
         """The coarse-to-fine encoding window at training `progress` in [0, 1], and the event

@@ -57,7 +57,7 @@ def write_config(tr: Trainer) -> Path:
             "perturbation": tr.perturbation,
             "pose_smoothing": tr.smoothing,
             "self_calibration": None if tr.selfcal is None else tr.selfcal.report(),
-            "field_restart": tr.clock.state_dict() if tr.clock.restarts else None,
+            "field_restart": tr.clock.state_dict() if tr.cfg.refine_restart else None,
             "versions": {"torch": torch.__version__, "fastenerf": __version__},
         },
     )

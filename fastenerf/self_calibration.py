@@ -161,6 +161,11 @@ class SelfCalibration:
         pc = self.pose_cal
         return pc is not None and pc.settle is not None and pc.settle.settled_at is not None
 
+    def given_turn_deg(self) -> float:
+        """How far off the given poses were (mean turn, degrees; `PoseCalibration`); 0
+        without pose refinement."""
+        return 0.0 if self.pose_cal is None else self.pose_cal.given_turn_deg()
+
     def use_field(self, field: Field) -> None:
         """Weight and hold `field` from now on (a new field: `field_restart`)."""
         if self.pose_cal is not None:

@@ -19,6 +19,7 @@ import torch
 
 from .config import TrainConfig
 from .errors import InputError
+from .field_restart import RestartClock
 from .fields import canonical_field_config
 from .io import atomic_path
 from .optim import fit_state
@@ -90,7 +91,7 @@ def trainer_state(tr: Trainer) -> dict[str, Any]:
     }
     if tr.selfcal is not None:  # learnt poses / thresholds (issue #20)
         state["self_calibration"] = tr.selfcal.state_dict()
-    if tr.clock.restarts:  # the field is a restarted one (refine_restart): its schedules' start
+    if tr.clock != RestartClock():  # refine_restart's: made (its schedules' start) or declined
         state["restart"] = tr.clock.state_dict()
     if tr.batch_size is not None:  # the samples per ray its next decisions read
         state["batch_size"] = tr.batch_size.state_dict()
@@ -107,7 +108,7 @@ def progress_record(tr: Trainer, finished: bool) -> dict[str, Any]:
         "last_eval_psnr": tr.last_eval_psnr,
         "finished": finished,
         **({"self_calibration": tr.selfcal.stats()} if tr.selfcal is not None else {}),
-        **({"field_restart": tr.clock.state_dict()} if tr.clock.restarts else {}),
+        **({"field_restart": tr.clock.state_dict()} if tr.clock != RestartClock() else {}),
     }
 
 

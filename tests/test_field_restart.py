@@ -22,6 +22,7 @@ REFINE = dict(
     refine_settle_px=1e3,
     steps=40,
     lr_warmup_steps=4,
+    refine_restart_deg=0.0,  # restart whatever the corrections' size
 )
 
 
@@ -51,6 +52,9 @@ def test_the_clock_counts_the_fields_own_steps_and_budget():
     again = RestartClock()
     again.load_state_dict(c.state_dict())
     assert again == c
+    declined = RestartClock(declined=True)
+    again.load_state_dict(declined.state_dict())
+    assert again == declined
     again.load_state_dict(None)  # a checkpoint from before restarts
     assert again == RestartClock()
 
@@ -82,8 +86,37 @@ def test_a_restart_at_the_settle_trains_a_new_field_from_its_start(scene, tmp_pa
     tr.run(progress=False)
     assert tr.step_count == 40 and tr.failure is None and tr.clock.restarts == 1
     conf = json.loads((tmp_path / "r" / "config.json").read_text())
-    assert conf["field_restart"] == {"step": 2, "progress": 0.05, "restarts": 1}
+    want = {"step": 2, "progress": 0.05, "restarts": 1, "declined": False}
+    assert conf["field_restart"] == want
     assert json.loads((tmp_path / "r" / "progress.json").read_text())["field_restart"]["step"] == 2
+
+
+@pytest.mark.parametrize(
+    "error_deg, smooth, limit, restarts",
+    [(0.0, 5, 0.1, 0), (1.0, 5, 0.1, 1), (0.0, 0, 5.0, 0), (0.0, 0, 0.0, 1)],
+)
+def test_a_restart_only_where_the_given_poses_were_off(
+    scene, tmp_path, error_deg, smooth, limit, restarts
+):
+    """refine_restart_deg: with the motion prior, the prior's mean turn decides (an exact
+    path's is ~1e-14°: declined at 0°, made at 1°); without it, the corrections' mean turn at
+    the settle (two steps' worth here: under 5°, over 0). A declined restart is recorded,
+    never looked at again (one host read), and survives a resume."""
+    c = cfg("vanilla", refine_restart=True, refine_restart_deg=limit, smooth_poses=smooth)
+    c.smooth_order, c.perturb = 1, PerturbConfig(pose_error_deg=error_deg)
+    tr = Trainer(scene, c, tmp_path / "r")
+    first = tr.field
+    for _ in range(6):
+        tr.step()
+    assert tr.clock.restarts == restarts and tr.clock.declined == (not restarts)
+    assert (tr.field is first) == (not restarts)
+    looks = []
+    tr.selfcal.given_turn_deg = lambda: looks.append(1) or 1e9
+    tr.step()
+    assert not looks and tr.clock.restarts == restarts  # decided once
+    tr.save_checkpoint()
+    resumed = Trainer(scene, c, tmp_path / "r", resume=True)
+    assert resumed.clock == tr.clock
 
 
 @pytest.mark.parametrize("backend", ["vanilla", "ngp"])
