@@ -206,7 +206,11 @@ class Trainer:
         if self.selfcal is not None:
             self.selfcal.use_field(self.field)
         self.clock = RestartClock(self.step_count, self.progress(), self.clock.restarts + 1)
+        old = self.graph
         self.set_step_mode(self.step_mode_asked)
+        if old is not None and self.graph is not None:  # the run's counts, not the new field's
+            for key in ("captures", "replays", "returns"):
+                setattr(self.graph, key, getattr(self.graph, key) + getattr(old, key))
 
     def _make_batch_size(self) -> BatchSize | None:
         """The pixels-per-step rule of samples_per_step (`batch_size`), between one quantum

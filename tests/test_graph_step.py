@@ -272,15 +272,19 @@ def test_graph_body_takes_the_plain_paths_steps_through_a_field_restart(scene, t
     field, and the graphed step is made again for it (its own buffers and optimiser); the
     losses are the plain path's through the restart and the new fields end alike."""
     kw = dict(steps=12, refine_poses=True, refine_start=0.0, refine_warmup=0.0)
-    kw.update(refine_settle_px=1e3, refine_restart=True)
+    kw.update(refine_settle_px=1e3, refine_restart=True, refine_restart_deg=0.0, refine_gate=0.0)
     plain = make(scene, tmp_path / "plain", "plain", **kw)
     a = losses(plain, 12)
     graph = make(scene, tmp_path / "graph", "graph", **kw)
     first = graph.graph
-    b = losses(graph, 12)
+    graph.step()
+    first.captures, first.replays, first.returns = 3, 40, 1  # what a GPU's would have been
+    b = losses(graph, 11)
     assert_same_losses(a, b)
     assert plain.clock == graph.clock and graph.clock.restarts == 1
     assert graph.step_mode == "graph" and graph.graph is not first
+    new = graph.graph  # the run's counts carried over (the CPU captures nothing)
+    assert (new.captures, new.replays, new.returns) == (3, 40, 1)
     assert graph.graph.field is graph.field
     got = graph.field.state_dict()
     for k, want in plain.field.state_dict().items():
