@@ -11,6 +11,7 @@ from fastenerf.data_parallel import data_parallel_trainer
 from fastenerf.errors import InputError
 from fastenerf.field_restart import RestartClock
 from fastenerf.train import Trainer
+from tests.test_self_calibration import whole_and_resumed
 from tests.test_train import tiny_cfg
 
 # the poses settle at the second look (step 2 of 40: every movement is under 1e3 px)
@@ -143,17 +144,9 @@ def test_a_restarted_field_starts_where_the_first_one_did(scene, tmp_path, backe
 def test_a_run_checkpointed_after_its_restart_resumes_exactly(scene, tmp_path):
     """A checkpoint after the restart holds the clock: the resumed run takes the same steps
     (the same learning rates, the new field's schedules) as one that never stopped."""
-    c = cfg("vanilla", refine_restart=True, steps=12)
-    whole = Trainer(scene, c, tmp_path / "whole")
-    whole.run(progress=False)
-    part = Trainer(scene, c, tmp_path / "part")
-    for _ in range(5):
-        part.step()
-    part.save_checkpoint()
-    del part
-    resumed = Trainer(scene, c, tmp_path / "part", resume=True)
+    kw = {**REFINE, "perturb": PerturbConfig(pose_error_deg=1.0), "steps": 12}
+    whole, resumed = whole_and_resumed(scene, {**kw, "refine_restart": True}, tmp_path, 5)
     assert resumed.clock == whole.clock and whole.clock.restarts == 1 and whole.clock.step < 5
-    resumed.run(progress=False)
     a, r = params(whole.field), params(resumed.field)
     assert all(torch.equal(a[k], r[k]) for k in a)
     assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
