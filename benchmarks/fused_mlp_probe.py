@@ -11,8 +11,10 @@ colour MLP (32 -> 64 -> 64 -> 8, two), each both ways, forward and forward+backw
 float16 with float32 accumulation, before anything is built on it:
 
 - fused: one Warp kernel a pass, `TILE_M` samples a block; the backward recomputes the hidden
-  layers from the input rather than reading them, and adds each block's weight gradients into
-  float32 buffers (`wp.tile_atomic_add`). Two variants on a GPU (`VARIANTS`): `wp.tile_matmul`
+  layers from the input rather than reading them, and sums each block's weight gradients over
+  its `BACKWARD_TILES` tiles on chip before adding them into float32 buffers
+  (`wp.tile_atomic_add`: one add a block, not one a tile, so 2^20 samples make 1,024 adds to
+  the same few thousand addresses, not 16,384). Two variants on a GPU (`VARIANTS`): `wp.tile_matmul`
   through cuBLASDx (LTOs compiled on first use) and through Warp's cooperative scalar GEMM;
 - torch: `F.linear` and `relu` in float16 under autograd, as the field runs them.
 
@@ -45,7 +47,8 @@ from fastenerf.run import resolve_device
 from .cli import benchmark_main, print_or_write_table
 from .timing import time_ms
 
-TILE_M = 64  # samples a block
+TILE_M = 64  # samples a tile: a forward block's
+BACKWARD_TILES = 16  # tiles a backward block: its weight gradients summed on chip first
 N_IN, N_HIDDEN, N_OUT, N_RGB = 32, 64, 16, 8  # N_RGB: the colour MLP's padded output
 
 
@@ -85,27 +88,30 @@ def _backward(
     gw1: wp.array2d(dtype=wp.float32),
     gw2: wp.array2d(dtype=wp.float32),
 ):
-    """The gradients of `_forward` for one block: gx (its rows), and the block's share of gw1
-    and gw2 added in (they start at zero); the hidden layer recomputed from x."""
+    """The gradients of `_forward` for one block of `BACKWARD_TILES` tiles: gx (its rows),
+    and the block's share of gw1 and gw2 summed over its tiles, then added in (they start at
+    zero: one atomic add a block, not one a tile); the hidden layer recomputed from x."""
     i = wp.tid()
-    a = wp.tile_load(x, shape=(TILE_M, N_IN), offset=(i * TILE_M, 0))
     b1 = wp.tile_load(w1, shape=(N_IN, N_HIDDEN))
     b2 = wp.tile_load(w2, shape=(N_HIDDEN, N_OUT))
-    g = wp.tile_load(gy, shape=(TILE_M, N_OUT), offset=(i * TILE_M, 0))
-    h = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(a, b1, h)
-    h16 = wp.tile_astype(wp.tile_map(_relu, h), wp.float16)
-    gh = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(g, wp.tile_transpose(b2), gh)
-    gh16 = wp.tile_astype(wp.tile_map(_masked, gh, h), wp.float16)
-    ga = wp.tile_zeros(shape=(TILE_M, N_IN), dtype=wp.float32)
-    wp.tile_matmul(gh16, wp.tile_transpose(b1), ga)
-    wp.tile_store(gx, ga, offset=(i * TILE_M, 0))
-    d2 = wp.tile_zeros(shape=(N_HIDDEN, N_OUT), dtype=wp.float32)
-    wp.tile_matmul(wp.tile_transpose(h16), g, d2)
-    wp.tile_atomic_add(gw2, d2)
     d1 = wp.tile_zeros(shape=(N_IN, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(wp.tile_transpose(a), gh16, d1)
+    d2 = wp.tile_zeros(shape=(N_HIDDEN, N_OUT), dtype=wp.float32)
+    for t in range(BACKWARD_TILES):
+        row = (i * BACKWARD_TILES + t) * TILE_M
+        a = wp.tile_load(x, shape=(TILE_M, N_IN), offset=(row, 0))
+        g = wp.tile_load(gy, shape=(TILE_M, N_OUT), offset=(row, 0))
+        h = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+        wp.tile_matmul(a, b1, h)
+        h16 = wp.tile_astype(wp.tile_map(_relu, h), wp.float16)
+        gh = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+        wp.tile_matmul(g, wp.tile_transpose(b2), gh)
+        gh16 = wp.tile_astype(wp.tile_map(_masked, gh, h), wp.float16)
+        ga = wp.tile_zeros(shape=(TILE_M, N_IN), dtype=wp.float32)
+        wp.tile_matmul(gh16, wp.tile_transpose(b1), ga)
+        wp.tile_store(gx, ga, offset=(row, 0))
+        wp.tile_matmul(wp.tile_transpose(h16), g, d2)
+        wp.tile_matmul(wp.tile_transpose(a), gh16, d1)
+    wp.tile_atomic_add(gw2, d2)
     wp.tile_atomic_add(gw1, d1)
 
 
@@ -142,36 +148,38 @@ def _backward2(
     gw2: wp.array2d(dtype=wp.float32),
     gw3: wp.array2d(dtype=wp.float32),
 ):
-    """`_forward2`'s gradients for one block, as `_backward`'s."""
+    """`_forward2`'s gradients for one block of `BACKWARD_TILES` tiles, as `_backward`'s."""
     i = wp.tid()
-    a = wp.tile_load(x, shape=(TILE_M, N_IN), offset=(i * TILE_M, 0))
     b1 = wp.tile_load(w1, shape=(N_IN, N_HIDDEN))
     b2 = wp.tile_load(w2, shape=(N_HIDDEN, N_HIDDEN))
     b3 = wp.tile_load(w3, shape=(N_HIDDEN, N_RGB))
-    g = wp.tile_load(gy, shape=(TILE_M, N_RGB), offset=(i * TILE_M, 0))
-    p1 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(a, b1, p1)
-    h1 = wp.tile_astype(wp.tile_map(_relu, p1), wp.float16)
-    p2 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(h1, b2, p2)
-    h2 = wp.tile_astype(wp.tile_map(_relu, p2), wp.float16)
-    g2 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(g, wp.tile_transpose(b3), g2)
-    g2h = wp.tile_astype(wp.tile_map(_masked, g2, p2), wp.float16)
-    g1 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(g2h, wp.tile_transpose(b2), g1)
-    g1h = wp.tile_astype(wp.tile_map(_masked, g1, p1), wp.float16)
-    ga = wp.tile_zeros(shape=(TILE_M, N_IN), dtype=wp.float32)
-    wp.tile_matmul(g1h, wp.tile_transpose(b1), ga)
-    wp.tile_store(gx, ga, offset=(i * TILE_M, 0))
-    d3 = wp.tile_zeros(shape=(N_HIDDEN, N_RGB), dtype=wp.float32)
-    wp.tile_matmul(wp.tile_transpose(h2), g, d3)
-    wp.tile_atomic_add(gw3, d3)
-    d2 = wp.tile_zeros(shape=(N_HIDDEN, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(wp.tile_transpose(h1), g2h, d2)
-    wp.tile_atomic_add(gw2, d2)
     d1 = wp.tile_zeros(shape=(N_IN, N_HIDDEN), dtype=wp.float32)
-    wp.tile_matmul(wp.tile_transpose(a), g1h, d1)
+    d2 = wp.tile_zeros(shape=(N_HIDDEN, N_HIDDEN), dtype=wp.float32)
+    d3 = wp.tile_zeros(shape=(N_HIDDEN, N_RGB), dtype=wp.float32)
+    for t in range(BACKWARD_TILES):
+        row = (i * BACKWARD_TILES + t) * TILE_M
+        a = wp.tile_load(x, shape=(TILE_M, N_IN), offset=(row, 0))
+        g = wp.tile_load(gy, shape=(TILE_M, N_RGB), offset=(row, 0))
+        p1 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+        wp.tile_matmul(a, b1, p1)
+        h1 = wp.tile_astype(wp.tile_map(_relu, p1), wp.float16)
+        p2 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+        wp.tile_matmul(h1, b2, p2)
+        h2 = wp.tile_astype(wp.tile_map(_relu, p2), wp.float16)
+        g2 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+        wp.tile_matmul(g, wp.tile_transpose(b3), g2)
+        g2h = wp.tile_astype(wp.tile_map(_masked, g2, p2), wp.float16)
+        g1 = wp.tile_zeros(shape=(TILE_M, N_HIDDEN), dtype=wp.float32)
+        wp.tile_matmul(g2h, wp.tile_transpose(b2), g1)
+        g1h = wp.tile_astype(wp.tile_map(_masked, g1, p1), wp.float16)
+        ga = wp.tile_zeros(shape=(TILE_M, N_IN), dtype=wp.float32)
+        wp.tile_matmul(g1h, wp.tile_transpose(b1), ga)
+        wp.tile_store(gx, ga, offset=(row, 0))
+        wp.tile_matmul(wp.tile_transpose(h2), g, d3)
+        wp.tile_matmul(wp.tile_transpose(h1), g2h, d2)
+        wp.tile_matmul(wp.tile_transpose(a), g1h, d1)
+    wp.tile_atomic_add(gw3, d3)
+    wp.tile_atomic_add(gw2, d2)
     wp.tile_atomic_add(gw1, d1)
 
 
@@ -186,7 +194,7 @@ def kernels(variant: str) -> dict:
     """The variant's kernels by name (`VARIANTS`: tile_matmul through cuBLASDx on a GPU, or
     Warp's cooperative scalar GEMM), made once."""
     if variant not in _KERNELS:
-        opts = {"enable_mathdx_gemm": VARIANTS[variant]}
+        opts = {"enable_mathdx_gemm": VARIANTS[variant], "max_unroll": 1}  # a loop, not 16 copies
         _KERNELS[variant] = {
             f.__name__: wp.kernel(
                 f,
@@ -210,12 +218,14 @@ def fused_forward(x: torch.Tensor, ws: list[torch.Tensor], variant: str = "scala
 
 
 def fused_backward(x, ws, gy, variant: str = "scalar") -> list[torch.Tensor]:
-    """`fused_forward`'s gradients for gy (N, out) float16: [gx, gw per weight], float32."""
+    """`fused_forward`'s gradients for gy (N, out) float16: [gx, gw per weight], float32; N a
+    multiple of TILE_M * BACKWARD_TILES."""
     dev = x.device
     grads = [torch.empty(x.shape[0], N_IN, dtype=torch.float32, device=dev)]
     grads += [torch.zeros(w.shape, dtype=torch.float32, device=dev) for w in ws]
     kernel = kernels(variant)["_backward" if len(ws) == 2 else "_backward2"]
-    launch_tiled(kernel, x.shape[0] // TILE_M, TILE_M, x, [x, *ws, gy, *grads])
+    blocks = x.shape[0] // (TILE_M * BACKWARD_TILES)
+    launch_tiled(kernel, blocks, TILE_M, x, [x, *ws, gy, *grads])
     return grads
 
 
@@ -347,7 +357,8 @@ def probe(n: int, device: str, repeats: int = 20, out: Path | None = None) -> di
     """Both networks (`SHAPES`), a network or variant that fails recorded with its error and
     the rest still run; progress on stderr, and with `out` the results so far rewritten
     there (atomically) after each part, so a run cut off by a time limit leaves them."""
-    require(n > 0 and n % TILE_M == 0, f"--n must be a positive multiple of {TILE_M}, got {n}")
+    rows = TILE_M * BACKWARD_TILES  # a backward block's
+    require(n > 0 and n % rows == 0, f"--n must be a positive multiple of {rows}, got {n}")
     res: dict = {"n": n, "device": device, "tile_m": TILE_M}
     t0 = time.perf_counter()
 

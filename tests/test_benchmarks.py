@@ -1407,22 +1407,24 @@ def test_graph_relaunch_times_each_pattern_and_refuses_a_cpu(tiny_scene, tmp_pat
 
 def test_fused_mlp_probe_is_float64s_mlp_and_refuses_bad_input(tmp_path, capsys):
     """The tile-fused MLPs' outputs and gradients (Warp's CPU tiles; the density and the
-    colour network's shapes) are the float64 MLPs' within float16 rounding, as torch's
-    float16 MLPs are; a bad --n, an existing --out or one
-    that is no .json file is one line and exit code 2, and an existing file stays as it was."""
+    colour network's shapes; two backward blocks, each summing 16 tiles' weight gradients)
+    are the float64 MLPs' within float16 rounding, as torch's float16 MLPs are (at 2,048
+    samples a few pre-activations round across 0: both ~1 % off in the colour MLP's gx); a
+    bad --n, an existing --out or one that is no .json file is one line and exit code 2,
+    and an existing file stays as it was."""
     from benchmarks import fused_mlp_probe as probe
 
     out = tmp_path / "p.json"
-    assert probe.main(["--device", "cpu", "--n", "128", "--out", str(out)]) == 0
+    assert probe.main(["--device", "cpu", "--n", "1024", "--out", str(out)]) == 0
     before = out.read_text()
     res = json.loads(before)
-    assert res["n"] == 128 and "torch_ms" not in res["density"]  # no CPU timing
+    assert res["n"] == 1024 and "torch_ms" not in res["density"]  # no CPU timing
     assert set(res["density"]["scalar"]["errors"]) == {"y", "gx", "gw1", "gw2"}
     assert set(res["colour"]["scalar"]["errors"]) == {"y", "gx", "gw1", "gw2", "gw3"}
     for net in ("density", "colour"):
         assert "cublasdx" not in res[net] and "ms" not in res[net]["scalar"]
         for key, err in res[net]["scalar"]["errors"].items():
-            assert err < 2e-3 and err <= 2 * res[net]["torch_errors"][key], (net, key, res)
+            assert err < 2e-2 and err <= 2 * res[net]["torch_errors"][key], (net, key, res)
     progress = capsys.readouterr().err
     assert "density: scalar done" in progress and "colour: scalar done" in progress
     # cuBLASDx is a module option: each variant's kernels are their own, without adjoints
@@ -1432,7 +1434,7 @@ def test_fused_mlp_probe_is_float64s_mlp_and_refuses_bad_input(tmp_path, capsys)
     assert not any(k.options.get("enable_backward", True) for k in both)
     capsys.readouterr()
     for bad, words in (
-        (["--n", "100"], "multiple of 64"),
+        (["--n", "512"], "multiple of 1024"),
         (["--out", str(out)], "exists"),
         (["--out", str(tmp_path / "p.txt")], ".json"),
         (["--out", str(out / "under-a-file.json")], "not a folder"),
