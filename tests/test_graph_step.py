@@ -292,6 +292,24 @@ def test_graph_body_takes_the_plain_paths_steps_through_a_field_restart(scene, t
             assert_same_tensor(want, got[k], k)
 
 
+@pytest.mark.skipif(not CUDA, reason="no CUDA: capture needs it")
+def test_a_field_restart_captures_the_new_fields_step(scene, tmp_path):
+    """On CUDA a restart (at the second look) before any capture, then the new field's step
+    warmed up, captured and replayed: the steps are the device path's through it (to the
+    GPU atomics' order) and nothing gave up capturing."""
+    steps = 3 * WARMUP + 6
+    kw = dict(steps=steps, refine_poses=True, refine_start=0.0, refine_warmup=0.0)
+    kw.update(refine_settle_px=1e3, refine_restart=True, refine_restart_deg=0.0, refine_gate=0.0)
+    device = make(scene, tmp_path / "device", "device", "cuda", **kw)
+    a = losses(device, steps)
+    graph = make(scene, tmp_path / "graph", "graph", "cuda", **kw)
+    b = losses(graph, steps)
+    g = graph.graph
+    assert graph.clock.restarts == 1 and device.clock == graph.clock
+    assert g.failure is None and g.captures >= 1 and g.replays >= WARMUP
+    assert b == pytest.approx(a, rel=1e-3)
+
+
 def test_graph_body_takes_the_plain_paths_steps_through_refine_diffuse(scene, tmp_path):
     """refine_diffuse_until on the graphed body: the colour's mask changes in place where
     the hold ends (here at the settle), and the body's steps are the plain path's through it."""

@@ -3,7 +3,8 @@
 # folder to .gpu-job with the tiny test scene in .gpu-job/tiny/scene and COMMIT set; `bash
 # benchmarks/gpu_start.sh s56` starts it):
 # 0. the CUDA-only tests of the graphed step (by name: the GPU machine's Warp compiles no
-#    CPU kernels, so the file's CPU cases fail there, as on gpu_s55), graph_keys now 4;
+#    CPU kernels, so the file's CPU cases fail there, as on gpu_s55), graph_keys now 4, and
+#    a capture after refine_restart's new field (before restart.txt's runs are trusted);
 # 1. benchmarks.fused_mlp_probe: both MLPs fully fused in Warp tiles, cuBLASDx and the
 #    scalar GEMM, against torch's GEMMs (gpu_s55's run timed out compiling; now without
 #    adjoint LTOs, progress on stderr, partial results written after every part);
@@ -26,7 +27,8 @@ cuda_tests "$T::test_captured_step_matches_the_device_step" \
     "$T::test_a_failed_capture_leaves_an_eager_step_that_draws_random_numbers" \
     "$T::test_capture_copy_is_a_second_graph_of_the_same_step" \
     "$T::test_a_kept_graph_replays_when_its_capacity_returns" \
-    "$T::test_kept_graphs_let_go_when_the_device_is_short_of_memory"
+    "$T::test_kept_graphs_let_go_when_the_device_is_short_of_memory" \
+    "$T::test_a_field_restart_captures_the_new_fields_step"
 timeout 420 $PY -u -m benchmarks.fused_mlp_probe --device "$DEVICE" \
     --out "$RES/fused_mlp_probe.json" > "$RES/fused_mlp_probe.log" 2>&1
 note "fused_mlp_probe rc $?"
