@@ -155,10 +155,12 @@ def test_presets_hold_the_reference_values(scene_config):
 def test_lr_decay_start_holds_the_lr_then_decays_over_the_rest():
     from types import SimpleNamespace
 
+    from fastenerf.field_restart import RestartClock
     from fastenerf.train import Trainer
 
-    def lr_at(cfg, step):  # Trainer.lr_at on a budget of 1000 steps, no trainer built
-        return Trainer.lr_at(SimpleNamespace(cfg=cfg, progress=lambda s: s / 1000), step)
+    def lr_at(cfg, step, clock=None):  # Trainer.lr_at on a budget of 1000 steps, no trainer
+        fake = SimpleNamespace(cfg=cfg, progress=lambda s: s / 1000, clock=clock or RestartClock())
+        return Trainer.lr_at(fake, step)
 
     late = train_preset("fast", "ngp", steps=1000, lr_decay_start=0.5)
     assert lr_at(late, 0) == lr_at(late, 500) == late.lr
@@ -171,3 +173,8 @@ def test_lr_decay_start_holds_the_lr_then_decays_over_the_rest():
     plain = train_preset("fast", "ngp", steps=1000, lr_decay_start=0.0)
     assert plain.lr_decay_start == 0.0
     assert lr_at(plain, 250) == plain.lr * ratio**0.25
+    # a field restarted at step 400 (refine_restart): its schedule over the 600 steps left
+    clock = RestartClock(step=400, progress=0.4, restarts=1)
+    assert lr_at(late, 400, clock) == lr_at(late, 700, clock) == late.lr
+    assert lr_at(late, 850, clock) == pytest.approx(late.lr * ratio**0.5, rel=1e-12)
+    assert lr_at(late, 1000, clock) == pytest.approx(late.lr_final, rel=1e-12)
