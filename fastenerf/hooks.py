@@ -198,6 +198,7 @@ CALIBRATION_KEYS = (
     "pose_settle_px",
     "field_win_max",
     "poses_frozen",
+    "field_restarts",
     "threshold_pos",
     "threshold_neg",
     "threshold_ratio",

@@ -392,6 +392,8 @@ class Trainer:
         flush_step = len(self.pending) + 1 >= STATS_FLUSH_EVERY
         if self.selfcal is not None and (not on_device or flush_step):
             stats.update(self.selfcal.stats(on_device))
+        if self.cfg.refine_restart:  # a host count: the viewer's and the log's
+            stats["field_restarts"] = float(self.clock.restarts)
         if not on_device:
             append_history(self.history, stats, self.skipped_steps)
             if self.batch_size is not None:

@@ -65,15 +65,17 @@ def test_a_restart_at_the_settle_trains_a_new_field_from_its_start(scene, tmp_pa
     """At the step where the poses settle a new field is built (the first field's initial
     weights: same seed) with its own optimiser; the learning rate warms up again and decays
     over the budget left, the occupancy schedule counts the new field's steps, the poses
-    freeze, and the run goes on to its budget; config.json and progress.json say where."""
+    freeze, and the run goes on to its budget; config.json and progress.json say where, and
+    every step's stats (metrics.jsonl, the viewer's) how many restarts there were."""
     tr = Trainer(scene, cfg(backend, refine_restart=True), tmp_path / "r")
     init = params(tr.field)
     assert tr.cfg.refine_freeze  # implied
-    fields, lrs = [], []
+    fields, lrs, counts = [], [], []
     for _ in range(6):
         tr.step()
         fields.append(tr.field)
         lrs.append(tr.history[-1]["lr"])
+        counts.append(tr.history[-1]["field_restarts"])
     tr.flush_stats()
     assert fields[1] is fields[0] and all(f is fields[2] for f in fields[3:])
     assert fields[2] is not fields[1] and tr.clock == RestartClock(2, 0.05, 1)
@@ -89,6 +91,9 @@ def test_a_restart_at_the_settle_trains_a_new_field_from_its_start(scene, tmp_pa
     conf = json.loads((tmp_path / "r" / "config.json").read_text())
     want = {"step": 2, "progress": 0.05, "restarts": 1, "declined": False}
     assert conf["field_restart"] == want
+    assert counts == [0.0, 0.0, 1.0, 1.0, 1.0, 1.0]  # the viewer's
+    lines = (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()
+    assert lines and all(json.loads(line)["field_restarts"] == 1.0 for line in lines)
     assert json.loads((tmp_path / "r" / "progress.json").read_text())["field_restart"]["step"] == 2
 
 

@@ -151,6 +151,7 @@ def training_section(src, worker) -> None:
             f"pose corrections {last['pose_correction_deg']:.3f} deg mean"
             + ("" if err is None else f", error {err:.3f} deg")
             + (", frozen" if last.get("poses_frozen") else "")  # --refine-freeze
+            + (", field restarted" if last.get("field_restarts") else "")  # --refine-restart
         )
     if "field_win_max" in last:  # --refine-settle-px
         moved = last.get("pose_settle_px")
