@@ -195,8 +195,8 @@ class TrainConfig:
     """Once the poses settle (refine_settle_px), start the field afresh on them (a new field,
     occupancy grid and optimiser; the learning rate, occupancy and cone schedules over the
     budget left, `field_restart`): the first field has learnt the wrong poses' blur. Only
-    where the given poses were off (refine_restart_deg). Implies refine_freeze (a new field's
-    gradient would move the settled poses); one GPU only."""
+    where the given poses were off (refine_restart_deg). The poses are frozen from a restart
+    on (a new field's gradient would move them); one GPU only."""
     refine_restart_deg: float = field(default=0.1, metadata={"min": 0.0, "max": 180.0})
     """refine_restart only where the given poses were off by more than this mean turn
     (degrees): the motion prior's (smooth_poses; an exact path's is ~1e-14) or, without it,
@@ -351,7 +351,6 @@ class TrainConfig:
                 c.log_eps = 1e-5 if real else 0.1
         cpu_ngp = c.backend == "ngp" and not str(device).startswith("cuda")
         c._resolve_windows(scene.n_views, real, cpu_ngp)
-        c.refine_freeze = c.refine_freeze or c.refine_restart
         why = "needs refine_settle_px here (it says when the poses settled), e.g. 0.3"
         ok = not c.refine_restart or c.refine_settle_px is not None
         _check(ok, "train config", "refine_restart", why)

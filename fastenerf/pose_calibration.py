@@ -145,6 +145,7 @@ class PoseCalibration:
         self.sharing = False  # the poses share one correction now (refine_shared_until)
         self.lr = 0.0  # this step's lr, on the host (the device may hold a copy)
         self.frozen = False  # the poses settled and refine_freeze stopped their learning
+        self.held = False  # a new field trains on the poses as they are (refine_restart)
         self.view_held = False  # the colour ignores the view direction (refine_diffuse_until)
         self.resets: torch.Tensor | None = None  # rows put back (refine_reset_deg), on device
         self._guard_look = -1  # the budget percent last guarded
@@ -155,7 +156,7 @@ class PoseCalibration:
         the poses settled, refine_freeze holds the lr at 0 (`frozen`); until they settle or
         refine_diffuse_until, the colour ignores the view direction (`view_held`)."""
         settled = self.settle is not None and self.settle.settled_at is not None
-        self.frozen = self.cfg.refine_freeze and settled
+        self.frozen = (self.cfg.refine_freeze and settled) or self.held
         self.lr = 0.0 if self.frozen else pose_lr(self.cfg, progress)
         held = progress < self.cfg.refine_diffuse_until and not settled
         if held != self.view_held:

@@ -167,9 +167,11 @@ class SelfCalibration:
         return 0.0 if self.pose_cal is None else self.pose_cal.given_turn_deg()
 
     def use_field(self, field: Field) -> None:
-        """Weight and hold `field` from now on (a new field: `field_restart`)."""
+        """Weight and hold `field` from now on, the poses frozen as they are (a new field:
+        `field_restart`; its young gradient would move them)."""
         if self.pose_cal is not None:
             self.pose_cal.field = field
+            self.pose_cal.held = True
 
     def param_groups(self) -> list[dict]:
         """Every optimiser group (poses, thresholds) of both optimisers."""

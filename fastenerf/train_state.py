@@ -166,6 +166,8 @@ def restore(tr: Trainer, ck: dict) -> None:
         if tr.selfcal is not None:
             tr.selfcal.load_state_dict(ck["self_calibration"])
         tr.clock.load_state_dict(ck.get("restart"))
+        if tr.clock.restarts and tr.selfcal is not None:  # the poses stay held
+            tr.selfcal.use_field(tr.field)
         saved = ck["sampler"]
         state = {k: _windows_loaded(saved[k]) for k in WINDOW_STATES if k in saved}
         state.update(gen=saved["gen"], position=int(saved.get("position", 0)))

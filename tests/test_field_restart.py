@@ -69,7 +69,7 @@ def test_a_restart_at_the_settle_trains_a_new_field_from_its_start(scene, tmp_pa
     every step's stats (metrics.jsonl, the viewer's) how many restarts there were."""
     tr = Trainer(scene, cfg(backend, refine_restart=True), tmp_path / "r")
     init = params(tr.field)
-    assert tr.cfg.refine_freeze  # implied
+    assert not tr.cfg.refine_freeze  # the poses freeze at a restart, not at every settle
     fields, lrs, counts = [], [], []
     for _ in range(6):
         tr.step()
@@ -123,6 +123,17 @@ def test_a_restart_only_where_the_given_poses_were_off(
     tr.save_checkpoint()
     resumed = Trainer(scene, c, tmp_path / "r", resume=True)
     assert resumed.clock == tr.clock
+    assert resumed.selfcal.pose_cal.held == bool(restarts)  # the poses stay frozen
+    if restarts:
+        return
+    # declined: the run is the one without the option, step for step (its poses go on)
+    c.refine_restart = False
+    plain = Trainer(scene, c, tmp_path / "plain")
+    for _ in range(7):
+        plain.step()
+    assert [h["loss"] for h in plain.history] == [h["loss"] for h in tr.history]
+    assert torch.equal(plain.selfcal.poses.delta, tr.selfcal.poses.delta)
+    assert not tr.selfcal.pose_cal.frozen
 
 
 @pytest.mark.parametrize("backend", ["vanilla", "ngp"])
