@@ -150,12 +150,17 @@ class PoseCalibration:
         self.resets: torch.Tensor | None = None  # rows put back (refine_reset_deg), on device
         self._guard_look = -1  # the budget percent last guarded
 
+    @property
+    def settled(self) -> bool:
+        """Whether the poses have settled (`refine_settle_px`; False without the settle)."""
+        return self.settle is not None and self.settle.settled_at is not None
+
     def schedule(self, progress: float) -> bool:
         """The lr and the shared phase at training `progress` in [0, 1]; returns whether the
         shared phase ended now (the caller then calls `forget_moments`). From the step after
         the poses settled, refine_freeze holds the lr at 0 (`frozen`); until they settle or
         refine_diffuse_until, the colour ignores the view direction (`view_held`)."""
-        settled = self.settle is not None and self.settle.settled_at is not None
+        settled = self.settled
         self.frozen = (self.cfg.refine_freeze and settled) or self.held
         self.lr = 0.0 if self.frozen else pose_lr(self.cfg, progress)
         held = progress < self.cfg.refine_diffuse_until and not settled

@@ -158,8 +158,7 @@ class SelfCalibration:
     def settled(self) -> bool:
         """Whether the poses have settled (`refine_settle_px`; False without refinement or
         without the settle)."""
-        pc = self.pose_cal
-        return pc is not None and pc.settle is not None and pc.settle.settled_at is not None
+        return self.pose_cal is not None and self.pose_cal.settled
 
     def given_turn_deg(self) -> float:
         """How far off the given poses were (mean turn, degrees; `PoseCalibration`); 0
