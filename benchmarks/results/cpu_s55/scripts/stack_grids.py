@@ -13,11 +13,17 @@ from PIL import Image, ImageDraw
 
 
 def main(argv: list[str]) -> int:
-    if len(argv) < 2 or Path(argv[0]).exists() or not all("=" in a for a in argv[1:]):
-        print(
-            "stack_grids: error: usage: stack_grids.py NEW.png LABEL=GRID.png ...", file=sys.stderr
-        )
+    def fail(why: str) -> int:
+        print(f"stack_grids: error: {why}", file=sys.stderr)
         return 2
+
+    if len(argv) < 2 or not all("=" in a for a in argv[1:]):
+        return fail("usage: stack_grids.py NEW.png LABEL=GRID.png ...")
+    if Path(argv[0]).exists():
+        return fail(f"{argv[0]} exists (nothing written)")
+    missing = [a.split("=", 1)[1] for a in argv[1:] if not Path(a.split("=", 1)[1]).is_file()]
+    if missing:
+        return fail(f"{missing[0]} is not a file (nothing written)")
     rows = []
     for item in argv[1:]:
         label, path = item.split("=", 1)
