@@ -29,7 +29,7 @@ cuda_tests "$T::test_captured_step_matches_the_device_step" \
     "$T::test_a_kept_graph_replays_when_its_capacity_returns" \
     "$T::test_kept_graphs_let_go_when_the_device_is_short_of_memory" \
     "$T::test_a_field_restart_captures_the_new_fields_step"
-timeout 420 $PY -u -m benchmarks.fused_mlp_probe --device "$DEVICE" \
+timeout 150 $PY -u -m benchmarks.fused_mlp_probe --device "$DEVICE" \
     --out "$RES/fused_mlp_probe.json" > "$RES/fused_mlp_probe.log" 2>&1
 note "fused_mlp_probe rc $?"
 commit=$(cat "$HERE/COMMIT" 2>/dev/null)
