@@ -20,6 +20,9 @@ LABEL=DIR. Without a label a row is named by the folder's last two parts, SCENE/
   replayed kept graphs instead (`graph_keys`);
 - compacting: the share of the last evaluation interval's steps that compacted;
 - error left: rotation error the poses still have (°, perturbed runs);
+- jitter: its part that changes from one pose to the next (°, `pose_refine.pose_jitter_deg`:
+  about the error itself where each pose's is its own, ~0 where it is smooth along the path;
+  runs from before the forty-fourth session have none);
 - largest turn: the largest correction any pose row had at the end (°, refined runs): a row
   that ran away stands out (gpu_s53's lattice at 1°: 9.5° where the rest stay under 0.7°);
 - settled: the budget fraction at which the windows lengthened (`refine_settle_px`; ↺: the
@@ -109,7 +112,8 @@ def row(label: str, run: dict, at: list[float], base: dict | None) -> list[str]:
     captures, back = _num(last.get("graph_captures"), "d"), last.get("graph_returns")
     cells.append(f"{captures} ({back} back)" if back else captures)
     cells.append(_num(last.get("compacted_share"), ".2f"))
-    for key, fmt in (("pose_error_deg", ".3f"), ("pose_correction_max_deg", ".2f")):
+    pose = ("pose_error_deg", ".3f"), ("pose_jitter_deg", ".3f"), ("pose_correction_max_deg", ".2f")
+    for key, fmt in pose:
         v = last.get(key)
         cells.append(DASH if v is None else f"{v:{fmt}}°")
     restart = run.get("restarted_at")  # refine_restart's new field
@@ -143,7 +147,8 @@ def table(items: list[str], at: list[float], base: str | None = None, phases: bo
         head = ["run", *[f"{a:g}–{b:g} s" for a, b in pairwise(at)], "compacting from", "share"]
     else:
         head = ["run", *[f"{t:g} s" for t in at], "Δ", "ms/step", "trained M", "marched M"]
-        head += ["slots M", "captures", "compacting", "error left", "largest turn", "settled"]
+        head += ["slots M", "captures", "compacting", "error left", "jitter", "largest turn"]
+        head.append("settled")
     lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
     for (label, _), run in zip(parsed, runs, strict=True):
         if phases:

@@ -195,6 +195,7 @@ CALIBRATION_KEYS = (
     "pose_correction_max_deg",
     "pose_error_deg",
     "pose_error_aligned_deg",
+    "pose_jitter_deg",
     "pose_settle_px",
     "field_win_max",
     "poses_frozen",

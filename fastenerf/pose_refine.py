@@ -252,9 +252,10 @@ class PoseRefiner(nn.Module):
         """Mean / max size of the corrections on the used rows (degrees, world units) and,
         with true poses, the corrected poses' remaining rotation error and centre offset, the
         angle of the world rotation they share against the truth (pose_gauge_deg,
-        `se3.mean_world_rotation`) and the error left once it is taken out
-        (pose_error_aligned_deg). on_device: the values as 0-dim device tensors, no host read
-        (a device-paced step's stats, copied to the host with the rest at its flush)."""
+        `se3.mean_world_rotation`), the error left once it is taken out
+        (pose_error_aligned_deg) and the error's pose-to-pose part (pose_jitter_deg).
+        on_device: the values as 0-dim device tensors, no host read (a device-paced step's
+        stats, copied to the host with the rest at its flush)."""
         # masked reductions over every row, not boolean indexing: one host read, at the end
         d, used = self.corrections().double(), self.used
         n = used.sum()
@@ -288,7 +289,25 @@ class PoseRefiner(nn.Module):
             for axis, w in zip("xyz", so3_log(W).unbind(), strict=True):
                 vals[f"pose_gauge_w{axis}"] = w
             vals["pose_error_aligned_deg"] = mean(relative_angle_deg(R, W @ true[:, :3, :3]))
+            vals["pose_jitter_deg"] = pose_jitter_deg(R, true[:, :3, :3], used)
         return _stacked(vals, on_device)
+
+
+def pose_jitter_deg(R: torch.Tensor, true_R: torch.Tensor, used: torch.Tensor) -> torch.Tensor:
+    """The part of the rotation error that changes from one grid pose to the next, degrees
+    (0-dim): the mean angle between neighbouring used rows' world-frame errors E_i = R_i true_iᵀ,
+    over √2. R, true_R: (G, 3, 3) in grid (time) order; used: (G,) bool.
+
+    Why: an event window compares two nearby poses, so an error that is each pose's own
+    (independent from one pose to the next) reads as motion that did not happen, while one
+    smooth along the path moves both ends alike. For errors independent per pose this is
+    about the mean error itself (a difference of two has √2 its size); for one smooth along
+    the path it is ~0. Masked reductions, no host read (`stats(on_device=True)`)."""
+    E = R @ true_R.transpose(-1, -2)
+    pair = used[1:] & used[:-1]
+    step = relative_angle_deg(E[1:], E[:-1])
+    n = pair.sum().clamp(min=1)
+    return torch.where(pair, step, 0.0).sum() / n / 2**0.5
 
 
 def _stacked(vals: dict[str, torch.Tensor], on_device: bool) -> dict[str, float | torch.Tensor]:

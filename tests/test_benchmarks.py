@@ -1058,7 +1058,7 @@ def test_gpu_stage_parts_pieces_rejoin_to_the_same_warp_so(tmp_path):
 
 def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
     """run_table: PSNR at the asked times ("—" where none was scheduled), Δ against the same
-    scene's --base row, step time, samples, buffer slots, compaction, error left, the
+    scene's --base row, step time, samples, buffer slots, compaction, error left, its jitter, the
     largest correction and settled_at from the run's config.json (↺ where the field restarted
     there); --out is written once, an existing one refused and left alone."""
     from benchmarks import run_table
@@ -1090,6 +1090,7 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
         graph_captures=7,
         graph_returns=12,
         pose_error_deg=0.0871,
+        pose_jitter_deg=0.0312,
         pose_correction_max_deg=9.4981,
     )
     restart = {"step": 300, "progress": 0.31, "restarts": 1}  # refine_restart's new field
@@ -1098,11 +1099,11 @@ def test_run_table_rows_deltas_and_refusals(tmp_path, capsys):
     assert run_table.main(args) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert lines[0].startswith("| run | 5 s | 15 s | 60 s | Δ | ms/step |") and len(lines) == 4
-    none0 = "| s/none0 | 30.00 | — | 32.00 | +0.00 | 6.00 | 0.90 | — | — | — | — | — | — | — |"
+    none0 = "| s/none0 | 30.00 | — | 32.00 | +0.00 | 6.00 | 0.90 | — | — | — | — | — | — | — | — |"
     assert lines[2] == none0
     assert lines[3] == (
         "| s/ref2 | 25.00 | — | 29.50 | -2.50 | 6.00 | 1.40 | 2.10 | 1.80 | 7 (12 back) | 1.00 "
-        "| 0.087° | 9.50° | 27% |"
+        "| 0.087° | 0.031° | 9.50° | 27% |"
     )
     assert run_table.main([str(out / "rs2")]) == 0
     assert capsys.readouterr().out.strip().splitlines()[-1].endswith("| 31% ↺ |")

@@ -429,6 +429,37 @@ def test_refiner_reports_the_shared_turn_and_the_error_without_it():
     assert st["pose_error_aligned_deg"] < st["pose_error_deg"]
 
 
+def test_jitter_is_the_pose_to_pose_part_of_the_error():
+    """pose_jitter_deg: ~0 for an error smooth along the path (a world turn shared by every
+    pose, or one growing slowly along it), about the error itself for an error each pose has
+    on its own (random axes), and unused rows (a loop's twin) are no neighbours."""
+    from scipy.spatial.transform import Rotation
+
+    from fastenerf.pose_refine import PoseRefiner
+
+    n = 200
+    true = _grid_poses(n)
+    used = torch.tensor([True] * n + [False])
+
+    def turned(rotvecs_deg):
+        given = true.clone()
+        R = torch.from_numpy(Rotation.from_rotvec(np.radians(rotvecs_deg)).as_matrix())
+        given[:, :3, :3] = R @ true[:, :3, :3]
+        return PoseRefiner(given, used, "none", true_c2w=true, translation=False).stats()
+
+    smooth = np.outer(np.sin(np.linspace(0, np.pi, n + 1)), [0.3, -0.2, 0.1])
+    st = turned(smooth)
+    assert st["pose_error_deg"] > 0.2 and st["pose_jitter_deg"] < 0.01
+    axes = np.random.default_rng(0).normal(size=(n + 1, 3))
+    per_pose = 0.05 * axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    st = turned(per_pose)
+    assert st["pose_error_deg"] == pytest.approx(0.05, rel=1e-3)
+    assert 0.035 < st["pose_jitter_deg"] < 0.065  # √(2 - 2 cos) of two random axes, over √2
+    far = per_pose.copy()
+    far[-1] = [30.0, 0, 0]  # the unused twin row: no neighbour of the last used one
+    assert turned(far)["pose_jitter_deg"] == pytest.approx(st["pose_jitter_deg"], rel=1e-6)
+
+
 @pytest.mark.parametrize("loop", [True, False])
 def test_knot_matrix_interpolates_linearly_between_neighbouring_knots(loop):
     from fastenerf.pose_refine import knot_matrix
