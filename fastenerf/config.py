@@ -197,6 +197,11 @@ class TrainConfig:
     budget left, `field_restart`): the first field has learnt the wrong poses' blur. Only
     where the given poses were off (refine_restart_deg). The poses are frozen from a restart
     on (a new field's gradient would move them); one GPU only."""
+    refine_resume: float = field(default=0.0, metadata={"min": 0.0, "max": 1.0})
+    """With refine_restart: the fraction of the new field's budget (what was left at the
+    restart) after which the poses learn again, against the new field, whose gradient no
+    longer carries the first field's blur; their lr goes on along its decay, their optimiser's
+    moments cleared. 0: the poses stay frozen to the end. Below 1."""
     refine_restart_deg: float = field(default=0.1, metadata={"min": 0.0, "max": 180.0})
     """refine_restart only where the given poses were off by more than this mean turn
     (degrees): the motion prior's (smooth_poses; an exact path's is ~1e-14) or, without it,
@@ -307,6 +312,10 @@ class TrainConfig:
         _check(ok, where, "refine_freeze", "needs refine_poses (it stops the pose learning)")
         ok = self.refine_poses or not self.refine_restart
         _check(ok, where, "refine_restart", "needs refine_poses (it restarts when they settle)")
+        v = self.refine_resume
+        _check(v < 1, where, "refine_resume", f"must be below 1 (the poses never resume), got {v}")
+        ok = self.refine_restart or v == 0
+        _check(ok, where, "refine_resume", "needs refine_restart (the poses resume after it)")
         per_pose = self.refine_knots == 0 and not self.refine_shared
         per_pose = per_pose and self.refine_shared_until == 0
         ok = self.refine_reset_deg == 0 or (self.refine_poses and per_pose)

@@ -146,6 +146,7 @@ class PoseCalibration:
         self.lr = 0.0  # this step's lr, on the host (the device may hold a copy)
         self.frozen = False  # the poses settled and refine_freeze stopped their learning
         self.held = False  # a new field trains on the poses as they are (refine_restart)
+        self.held_at: float | None = None  # the budget fraction of that restart
         self.view_held = False  # the colour ignores the view direction (refine_diffuse_until)
         self.resets: torch.Tensor | None = None  # rows put back (refine_reset_deg), on device
         self._guard_look = -1  # the budget percent last guarded
@@ -155,12 +156,28 @@ class PoseCalibration:
         """Whether the poses have settled (`refine_settle_px`; False without the settle)."""
         return self.settle is not None and self.settle.settled_at is not None
 
+    def hold(self, at: float, now: float | None = None) -> None:
+        """A new field trains from training progress `at` on (refine_restart): the poses stay
+        as they are until refine_resume of the budget left then is spent (to the end where it
+        is 0). now: the progress at which this is said, if later (a resumed checkpoint's):
+        past that point the poses learn already."""
+        self.held_at = at
+        self.held = now is None or not self._resumes(now)
+
+    def _resumes(self, progress: float) -> bool:
+        """Whether held poses learn again at training `progress` (refine_resume)."""
+        r = self.cfg.refine_resume
+        return r > 0 and progress >= self.held_at + r * (1.0 - self.held_at)
+
     def schedule(self, progress: float) -> bool:
         """The lr and the shared phase at training `progress` in [0, 1]; returns whether the
-        shared phase ended now (the caller then calls `forget_moments`). From the step after
-        the poses settled, refine_freeze holds the lr at 0 (`frozen`); until they settle or
-        refine_diffuse_until, the colour ignores the view direction (`view_held`)."""
-        settled = self.settled
+        optimiser's moments are stale now, where the shared phase ended or held poses resume
+        (the caller then calls `forget_moments`). From the step after the poses settled,
+        refine_freeze holds the lr at 0 (`frozen`), as a restart does (`hold`) until
+        refine_resume; until they settle or refine_diffuse_until, the colour ignores the view
+        direction (`view_held`)."""
+        settled, resumed = self.settled, self.held and self._resumes(progress)
+        self.held = self.held and not resumed
         self.frozen = (self.cfg.refine_freeze and settled) or self.held
         self.lr = 0.0 if self.frozen else pose_lr(self.cfg, progress)
         held = progress < self.cfg.refine_diffuse_until and not settled
@@ -169,7 +186,7 @@ class PoseCalibration:
             self.view_held = held
         was = self.sharing
         self.sharing = progress < self.cfg.refine_shared_until
-        return was and not self.sharing
+        return (was and not self.sharing) or resumed
 
     def given_turn_deg(self) -> float:
         """How far off the given poses were, as a mean turn (degrees): the motion prior's
@@ -290,7 +307,7 @@ class PoseCalibration:
         out["c2f"] = 1.0 if self.c2f is None else self.c2f
         if self.settle is not None:
             out.update(self.settle.stats())
-        if self.cfg.refine_freeze:
+        if self.cfg.refine_freeze or self.cfg.refine_restart:
             out["poses_frozen"] = float(self.frozen)
         if self.cfg.refine_diffuse_until > 0:
             out["view_held"] = float(self.view_held)

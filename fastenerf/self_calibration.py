@@ -165,12 +165,13 @@ class SelfCalibration:
         without pose refinement."""
         return 0.0 if self.pose_cal is None else self.pose_cal.given_turn_deg()
 
-    def use_field(self, field: Field) -> None:
-        """Weight and hold `field` from now on, the poses frozen as they are (a new field:
-        `field_restart`; its young gradient would move them)."""
+    def use_field(self, field: Field, at: float, now: float | None = None) -> None:
+        """Weight and hold `field` from training progress `at` on, the poses frozen as they
+        are (a new field: `field_restart`; its young gradient would move them) until
+        refine_resume (`PoseCalibration.hold`; now: a resumed run's progress)."""
         if self.pose_cal is not None:
             self.pose_cal.field = field
-            self.pose_cal.held = True
+            self.pose_cal.hold(at, now)
 
     def param_groups(self) -> list[dict]:
         """Every optimiser group (poses, thresholds) of both optimisers."""

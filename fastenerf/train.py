@@ -203,9 +203,9 @@ class Trainer:
         self.field = field.to(self.device)
         self._observe_training_cameras()
         self.optimizer = field_adam(self.field, self.cfg, self.device)
-        if self.selfcal is not None:
-            self.selfcal.use_field(self.field)
         self.clock = RestartClock(self.step_count, self.progress(), self.clock.restarts + 1)
+        if self.selfcal is not None:
+            self.selfcal.use_field(self.field, self.clock.progress)
         old = self.graph
         self.set_step_mode(self.step_mode_asked)
         if old is not None and self.graph is not None:  # the run's counts, not the new field's
@@ -286,6 +286,8 @@ class Trainer:
                 if restart_due(self.cfg, self.selfcal, self.clock):
                     self.restart_field()
                     lr = self.lr_at(self.step_count)
+                    # again, held: this step is the new field's, whose gradient moves no pose
+                    self.selfcal.before_step(self.progress(), lr / self.cfg.lr)
             set_lr(self.optimizer, lr)
             self.field.train()
             # The named ranges are what benchmarks.profile_step attributes time to (a range

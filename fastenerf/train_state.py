@@ -166,8 +166,6 @@ def restore(tr: Trainer, ck: dict) -> None:
         if tr.selfcal is not None:
             tr.selfcal.load_state_dict(ck["self_calibration"])
         tr.clock.load_state_dict(ck.get("restart"))
-        if tr.clock.restarts and tr.selfcal is not None:  # the poses stay held
-            tr.selfcal.use_field(tr.field)
         saved = ck["sampler"]
         state = {k: _windows_loaded(saved[k]) for k in WINDOW_STATES if k in saved}
         state.update(gen=saved["gen"], position=int(saved.get("position", 0)))
@@ -193,6 +191,8 @@ def restore(tr: Trainer, ck: dict) -> None:
     tr.wall_seconds = float(ck.get("wall_seconds", 0.0))
     tr.last_eval_psnr = ck.get("last_eval_psnr")
     tr.skipped_steps = int(ck.get("skipped_steps", 0))
+    if tr.clock.restarts and tr.selfcal is not None:  # the poses held, or resumed by now
+        tr.selfcal.use_field(tr.field, tr.clock.progress, now=tr.progress())
 
 
 def trim_metrics(run_dir: Path, step: int) -> None:

@@ -157,22 +157,60 @@ def test_a_restarted_field_starts_where_the_first_one_did(scene, tmp_path, backe
     }
 
 
-def test_a_run_checkpointed_after_its_restart_resumes_exactly(scene, tmp_path):
+@pytest.mark.parametrize("resume, stop", [(0.0, 5), (0.5, 5), (0.5, 10)])
+def test_a_run_checkpointed_after_its_restart_resumes_exactly(scene, tmp_path, resume, stop):
     """A checkpoint after the restart holds the clock: the resumed run takes the same steps
-    (the same learning rates, the new field's schedules) as one that never stopped."""
+    (the same learning rates, the new field's schedules) as one that never stopped; with
+    refine_resume, also where it stopped before the poses learnt again (step 5) or after
+    (step 10: its moments are not cleared a second time)."""
     kw = {**REFINE, "perturb": PerturbConfig(pose_error_deg=1.0), "steps": 12}
-    whole, resumed = whole_and_resumed(scene, {**kw, "refine_restart": True}, tmp_path, 5)
+    kw.update(refine_restart=True, refine_resume=resume)
+    whole, resumed = whole_and_resumed(scene, kw, tmp_path, stop)
     assert resumed.clock == whole.clock and whole.clock.restarts == 1 and whole.clock.step < 5
     a, r = params(whole.field), params(resumed.field)
     assert all(torch.equal(a[k], r[k]) for k in a)
     assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
+    assert whole.selfcal.pose_cal.frozen == (resume == 0)
+
+
+def test_held_poses_learn_again_after_refine_resume_of_the_budget_left(scene, tmp_path):
+    """refine_resume 0.5: from the restart (step 2 of 40, progress 0.05) the poses stay as
+    they are until half the budget left is spent (progress 0.525), then learn against the
+    new field, their lr back on its decay and the row Adam's moments and step counts cleared
+    (they were the first field's); the step stats say when they were frozen."""
+    from fastenerf.pose_calibration import pose_lr
+
+    tr = Trainer(scene, cfg("vanilla", refine_restart=True, refine_resume=0.5), tmp_path / "r")
+    pc, deltas, frozen = tr.selfcal.pose_cal, [], []
+    for _ in range(24):
+        tr.step()
+        deltas.append(tr.selfcal.poses.delta.detach().clone())
+        frozen.append(pc.frozen)
+    tr.flush_stats()
+    assert tr.clock.progress == pytest.approx(0.05)
+    first = next(i for i, f in enumerate(frozen) if not f and i > 2)  # the first learning again
+    assert all(frozen[2:first]) and not any(frozen[first:])
+    assert all(torch.equal(deltas[1], d) for d in deltas[2:first])
+    assert not torch.equal(deltas[first - 1], deltas[first])
+    assert tr.progress(first) == pytest.approx(0.525, abs=1 / 40)  # where refine_resume says
+    state = pc.optimizer.state[tr.selfcal.poses.delta]
+    visits = int(state["row_steps"].max())
+    assert 1 <= visits <= len(deltas) - first  # counted from the resume, not from step 0
+    assert pc.lr == pytest.approx(pose_lr(tr.cfg, tr.progress(tr.step_count - 1)), rel=1e-6)
+    flags = [h["poses_frozen"] for h in tr.history]
+    assert flags[2:first] == [1.0] * (first - 2) and flags[first:] == [0.0] * (24 - first)
 
 
 def test_refine_restart_is_checked(scene, tmp_path):
     """One-line errors: without refine_poses, without a settle tolerance (a CPU run leaves
-    refine_settle_px off) and with several GPUs; and a run without it never restarts."""
+    refine_settle_px off) and with several GPUs, refine_resume without it or at 1; and a run
+    without it never restarts."""
     with pytest.raises(InputError, match="'refine_restart' needs refine_poses"):
         tiny_cfg("vanilla", refine_restart=True).validate()
+    with pytest.raises(InputError, match="'refine_resume' needs refine_restart"):
+        tiny_cfg("vanilla", refine_poses=True, refine_resume=0.5).validate()
+    with pytest.raises(InputError, match="'refine_resume' must be below 1"):
+        cfg("vanilla", refine_restart=True, refine_resume=1.0).validate()
     c = tiny_cfg("vanilla", refine_poses=True, refine_restart=True)
     with pytest.raises(InputError, match="'refine_restart' needs refine_settle_px"):
         c.resolved(scene.config, "cpu")
