@@ -187,6 +187,11 @@ class TrainConfig:
     win_max (default: the reference's), and the corrections learn from windows up to
     refine_win_max (default: win_max) throughout. None: off (`pose_settle`), except on a
     GPU run of ngp's fast preset on a synthetic scene with win_max unset: SETTLE_PX (0.3)."""
+    refine_settle_smooth: int = field(default=0, metadata={"min": 0, "max": 1 << 20})
+    """Once the poses settle (refine_settle_px), fit the corrected turns to a smooth path once
+    (`pose_smoothing`'s fit, order 1, over this many grid poses; odd, >= 5) and set the
+    corrections to reach it: what each pose's own estimate adds of noise (`pose_jitter_deg`)
+    goes, an error smooth along the path stays. Needs a correction per pose. 0: off."""
     refine_freeze: bool = False
     """Stop learning the poses once they settle (refine_settle_px): the corrections stay as
     they are and the rays leave the autograd graph, so the rest of the run no longer pays for
@@ -321,6 +326,11 @@ class TrainConfig:
         ok = self.refine_reset_deg == 0 or (self.refine_poses and per_pose)
         why = "needs refine_poses with a correction per pose (no knots, no sharing)"
         _check(ok, where, "refine_reset_deg", why)
+        n = self.refine_settle_smooth
+        ok = n == 0 or (n >= 5 and n % 2 == 1)
+        _check(ok, where, "refine_settle_smooth", f"must be 0 (off) or odd and >= 5, got {n}")
+        ok = n == 0 or (self.refine_poses and per_pose)
+        _check(ok, where, "refine_settle_smooth", why)
         ok = self.refine_poses or self.refine_diffuse_until == 0
         _check(ok, where, "refine_diffuse_until", "needs refine_poses (it ends when they settle)")
         ok = self.refine_diffuse_until == 0 or self.backend == "ngp"
@@ -365,6 +375,8 @@ class TrainConfig:
         _check(ok, "train config", "refine_restart", why)
         ok = not c.refine_freeze or c.refine_settle_px is not None
         _check(ok, "train config", "refine_freeze", why)
+        ok = not c.refine_settle_smooth or c.refine_settle_px is not None
+        _check(ok, "train config", "refine_settle_smooth", why)
         if c.neg_ratio is None:
             c.neg_ratio = 0.05 if real else 0.1
         if c.distortion_weight is None:

@@ -24,6 +24,7 @@ from .fields.base import Field
 from .pose_guard import reset_runaways
 from .pose_refine import PoseRefiner, RowAdam
 from .pose_settle import PoseSettle
+from .pose_smoothing import check_window
 from .sampling import RayBatch, RaySampler
 
 ADAM_BETAS = (0.9, 0.999)
@@ -113,6 +114,8 @@ class PoseCalibration:
         self.gate = row_gate(cfg, prior_turn_deg) if row_adam else 0.0
         self.decay = cfg.refine_defaults()[1]
         check_knots(cfg.refine_knots, len(sampler.grid_c2w))
+        rows = int(used_rows(sampler).sum())
+        check_window(cfg.refine_settle_smooth, rows, "train config: refine_settle_smooth")
         self.refiner = PoseRefiner(
             sampler.grid_c2w,
             used_rows(sampler),
@@ -207,7 +210,8 @@ class PoseCalibration:
         if self.settle is not None and self.settle.due(progress):
             with torch.no_grad():
                 turns = self.refiner.corrections()[self.refiner.used, :3]
-            self.settle.look(progress, turns)
+            if self.settle.look(progress, turns) and c.refine_settle_smooth:
+                self.refiner.smooth_turns(c.refine_settle_smooth)
 
     def guard(self, progress: float, opt: torch.optim.Optimizer) -> None:
         """Once every 1 % of the budget, put back the rows whose correction turned further

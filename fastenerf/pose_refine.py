@@ -135,6 +135,7 @@ class PoseRefiner(nn.Module):
         if loop is None:
             twin = torch.allclose(grid_c2w[0].float(), grid_c2w[-1].float(), atol=1e-5)
             loop = twin and not bool(used[-1])
+        self.loop = bool(loop)
         B = knot_matrix(len(grid_c2w), knots, loop).to(mask.device) if knots else None
         self.register_buffer("interp", B)
         rows = 1 if shared else knots or len(grid_c2w)
@@ -168,6 +169,27 @@ class PoseRefiner(nn.Module):
         """Corrected rotations R' = Exp(ω) R, (G, 3, 3)."""
         d = self.corrections() if d is None else d
         return so3_exp(d[:, :3]) @ self.base[:, :3, :3]
+
+    @torch.no_grad()
+    def smooth_turns(self, window: int, order: int = 1) -> None:
+        """Fit the corrected rotations to a smooth path along the grid (`smooth_poses` over
+        `window` poses, degree `order`) and set each row's turn to reach it (in place, one
+        host round trip; shifts kept). A correction per row only (no knots, not shared): the
+        noise each row's own estimate carries goes, a correction smooth along the path stays.
+        With the mean gauge the fitted path is reached up to the turn every row shares."""
+        from .pose_smoothing import smooth_poses
+
+        if self.interp is not None or self.shared:
+            raise ValueError("PoseRefiner.smooth_turns: needs a correction per row")
+        base = self.base.double()
+        c2w = base.clone()
+        c2w[:, :3, :3] = self.rotations().double()
+        smooth = torch.from_numpy(smooth_poses(c2w.cpu().numpy(), window, self.loop, order))
+        R = base[:, :3, :3]
+        w = so3_log(smooth[:, :3, :3].to(R) @ R.transpose(-1, -2))  # world-frame turns
+        omega = torch.einsum("gji,gj->gi", R, w)  # Rᵀ w: each camera's own frame
+        rows = self.mask[:, :1] > 0
+        self.delta[:, :3].copy_(torch.where(rows, omega.to(self.delta), self.delta[:, :3]))
 
     def c2w(self) -> torch.Tensor:
         """Corrected camera-to-world poses, (G, 4, 4) float32."""

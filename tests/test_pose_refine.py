@@ -460,6 +460,48 @@ def test_jitter_is_the_pose_to_pose_part_of_the_error():
     assert turned(far)["pose_jitter_deg"] == pytest.approx(st["pose_jitter_deg"], rel=1e-6)
 
 
+def test_smooth_turns_take_out_each_rows_own_noise_and_keep_a_smooth_correction():
+    """Rows whose corrections are a smooth turn along the path plus each row's own noise:
+    smooth_turns(21) leaves the smooth part (its error against the smooth-only corrections a
+    fraction of the noise), the jitter a fraction of what it was; the loop's unused twin row
+    and the shifts stay as they were; knots are refused."""
+    from scipy.spatial.transform import Rotation
+
+    from fastenerf.pose_refine import PoseRefiner
+
+    n = 200
+    true = _grid_poses(n).float()
+    used = torch.tensor([True] * n + [False])
+    t = np.linspace(0, 2 * np.pi, n + 1)
+    smooth = np.radians(0.2) * np.stack([np.sin(t), np.cos(2 * t), 0.5 * np.sin(3 * t)], 1)
+    noise = np.random.default_rng(1).normal(0, np.radians(0.03), (n + 1, 3))
+    given = true.clone()  # the truth turned back by the smooth error
+    back = torch.from_numpy(Rotation.from_rotvec(-smooth).as_matrix()).float()
+    given[:, :3, :3] = back @ true[:, :3, :3]
+
+    def refiner(turns):
+        pr = PoseRefiner(given, used, "none", true_c2w=true, translation=True)
+        R = given[:, :3, :3].double()
+        with torch.no_grad():  # camera-frame rows whose world-frame turns are `turns`
+            pr.delta[:, :3] = torch.einsum("gji,gj->gi", R, torch.from_numpy(turns)).float()
+            pr.delta[:, 3:] = 0.01
+            pr.delta[-1] = 0.0
+        return pr
+
+    clean, noisy = refiner(smooth), refiner(smooth + noise)
+    before = noisy.stats()
+    assert clean.stats()["pose_error_deg"] < 1e-3 and before["pose_jitter_deg"] > 0.03
+    noisy.smooth_turns(21)
+    after = noisy.stats()
+    assert after["pose_jitter_deg"] < 0.2 * before["pose_jitter_deg"]
+    assert after["pose_error_deg"] < 0.35 * before["pose_error_deg"]
+    assert torch.equal(noisy.delta[:n, 3:], torch.full((n, 3), 0.01))
+    assert torch.equal(noisy.delta[-1], torch.zeros(6))
+    knots = PoseRefiner(given, used, "none", knots=8)
+    with pytest.raises(ValueError, match="a correction per row"):
+        knots.smooth_turns(21)
+
+
 @pytest.mark.parametrize("loop", [True, False])
 def test_knot_matrix_interpolates_linearly_between_neighbouring_knots(loop):
     from fastenerf.pose_refine import knot_matrix

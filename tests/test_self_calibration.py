@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
@@ -451,6 +452,47 @@ def test_refine_freeze_needs_the_poses_refined_and_a_settle_tolerance(scene):
         tiny(refine_poses=True, refine_freeze=True).resolved(scene.config, "cpu")
     c = tiny(refine_poses=True, refine_freeze=True, refine_settle_px=0.3)
     assert c.resolved(scene.config, "cpu").refine_freeze
+
+
+def test_refine_settle_smooth_smooths_the_turns_once_where_the_poses_settle(scene, tmp_path):
+    """refine_settle_smooth 5: at the settle (the second look, step 2 of 40) the corrected
+    turns are fitted to a smooth path once (the refiner's own smooth_turns, its effect: the
+    rows' pose-to-pose noise falls) and never again; a run checkpointed after it resumes
+    without smoothing again, bit for bit; bad values are one-line errors."""
+    cfg = dict(refine_poses=True, refine_start=0.0, refine_warmup=0.0, steps=40)
+    cfg.update(perturb=PerturbConfig(pose_error_deg=1.0), refine_gate=0.0, refine_settle_px=1e3)
+    cfg.update(refine_settle_smooth=5)
+    tr = Trainer(scene, tiny(**cfg), tmp_path / "r")
+    pr, calls = tr.selfcal.pose_cal.refiner, []
+    smooth = pr.smooth_turns
+
+    def counted(*a, **kw):
+        calls.append((tr.step_count, pr.stats()["pose_jitter_deg"]))
+        smooth(*a, **kw)
+        calls[-1] += (pr.stats()["pose_jitter_deg"],)
+
+    pr.smooth_turns = counted
+    for _ in range(8):
+        tr.step()
+    assert [c[0] for c in calls] == [2] and tr.selfcal.pose_cal.settled
+    assert calls[0][2] < 0.5 * calls[0][1]  # the rows' own noise went
+    whole, resumed = whole_and_resumed(scene, cfg, tmp_path, 5)
+    assert torch.equal(whole.selfcal.poses.delta, resumed.selfcal.poses.delta)
+    a, r = field_state(whole), field_state(resumed)
+    assert all(torch.equal(a[k], r[k]) for k in a)
+    for bad, words in (
+        (dict(refine_settle_smooth=4), "must be 0 (off) or odd and >= 5"),
+        (dict(refine_settle_smooth=5, refine_knots=8), "a correction per pose"),
+    ):
+        with pytest.raises(InputError, match=re.escape(words)):
+            tiny(**{**cfg, **bad}).validate()
+    with pytest.raises(InputError, match="'refine_settle_smooth' needs refine_poses"):
+        tiny(refine_settle_smooth=5).validate()
+    with pytest.raises(InputError, match="'refine_settle_smooth' needs refine_settle_px"):
+        tiny(refine_poses=True, refine_settle_smooth=5).resolved(scene.config, "cpu")
+    with pytest.raises(InputError, match="refine_settle_smooth: smooth_poses 100001 is longer"):
+        Trainer(scene, tiny(**{**cfg, "refine_settle_smooth": 100001}), tmp_path / "long")
+    assert not (tmp_path / "long").exists()
 
 
 @pytest.mark.parametrize("refine_win_max", [None, 2])
