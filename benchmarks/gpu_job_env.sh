@@ -14,6 +14,8 @@
 #                  `benchmarks.trace_gaps` into RES/gaps_NAME_VARIANT.md, then a progress note
 #   cuda_tests TEST_ARGS...   pytest on the tiny test scene HERE/tiny/scene (made before the
 #                  lease: the machine cannot draw one) into RES/tests_cuda.log, then a note
+#   graph_cuda_tests   cuda_tests of tests/test_graph_step.py's CUDA cases by name (the GPU
+#                  machine's staged Warp compiles no CPU kernels: the file's CPU cases fail there)
 #   run_lists LIST...   each HERE/LIST (a gpu_runs60.sh list, NAME.txt) in turn into RES/NAME
 #                  (the job's HERE/COMMIT recorded), then "runs done" and RES/all.done
 # DEVICE (cuda unless set) is exported for the job's commands.
@@ -47,6 +49,18 @@ cuda_tests() {
     FASTENERF_TINY_SCENE=$HERE/tiny/scene timeout 600 $PY -m pytest -q -p no:cacheprovider \
         "$@" > "$RES/tests_cuda.log" 2>&1
     note "CUDA tests rc $?"
+}
+graph_cuda_tests() {
+    local t=tests/test_graph_step.py
+    cuda_tests "$t::test_captured_step_matches_the_device_step" \
+        "$t::test_fused_relu_steps_are_the_plain_mlps_steps_captured_or_not" \
+        "$t::test_gpu_options_train_as_without_them_captured_or_not" \
+        "$t::test_graph_step_flags_an_overflowing_sample_buffer[cuda]" \
+        "$t::test_a_failed_capture_leaves_an_eager_step_that_draws_random_numbers" \
+        "$t::test_capture_copy_is_a_second_graph_of_the_same_step" \
+        "$t::test_a_kept_graph_replays_when_its_capacity_returns" \
+        "$t::test_kept_graphs_let_go_when_the_device_is_short_of_memory" \
+        "$t::test_a_field_restart_captures_the_new_fields_step"
 }
 run_lists() {
     local commit list

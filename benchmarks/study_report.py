@@ -409,15 +409,17 @@ def _prior_left(r: dict) -> str:
 
 
 def _pose_left(r: dict) -> str:
-    """The pose error a refined run ends with (°; at level 0 the corrections' own size), or
-    "no refinement"."""
+    """The pose error a refined run ends with (°; at level 0 the corrections' own size) and,
+    where the run reports it, its pose-to-pose part (`pose_jitter_deg`), or "no refinement"."""
     cal = r.get("self_calibration") or {}
     if not (cal.get("knobs") or {}).get("refine_poses"):
         return "no refinement"
     st = cal.get("stats") or {}
     mean = st.get("pose_error_deg", st.get("pose_correction_deg"))
     top = st.get("pose_error_max_deg", st.get("pose_correction_max_deg"))
-    return f"{_f(mean, '.3f')} / {_f(top, '.3f')}"
+    jitter = st.get("pose_jitter_deg")
+    tail = "" if jitter is None else f" (jitter {_f(jitter, '.3f')})"
+    return f"{_f(mean, '.3f')} / {_f(top, '.3f')}{tail}"
 
 
 def _score_cells(r: dict, ref, sup: dict) -> str:

@@ -141,6 +141,7 @@ def test_pose_studies_apply_the_angle_they_report(angle_studies, name):
     assert res["supplement"]["psnr"] == {} and res["supplement"]["break"] is None
     assert "no mount-error study" in md and "Supplement:" not in md
     assert "no refinement" not in md
+    assert f"(jitter {cal['stats']['pose_jitter_deg']:.3f})" in md  # its pose-to-pose part
     # the prior's column: a turn shared by every pose is no jitter, so the prior keeps it all;
     # the exact poses of level 0 (a turntable) it leaves as they are
     assert "| measured mean / max (°) | after the prior mean (°) | after refinement" in md

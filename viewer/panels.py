@@ -146,10 +146,11 @@ def training_section(src, worker) -> None:
     if "eval_psnr" in last and last["eval_psnr"] is not None:
         imgui.text(f"quick eval PSNR {last['eval_psnr']:.2f} dB")
     if "pose_correction_deg" in last:  # --refine-poses
-        err = last.get("pose_error_deg")
+        err, jitter = last.get("pose_error_deg"), last.get("pose_jitter_deg")
         imgui.text(
             f"pose corrections {last['pose_correction_deg']:.3f} deg mean"
             + ("" if err is None else f", error {err:.3f} deg")
+            + ("" if jitter is None else f" ({jitter:.3f} pose to pose)")
             + (", frozen" if last.get("poses_frozen") else "")  # --refine-freeze
             + (", field restarted" if last.get("field_restarts") else "")  # --refine-restart
         )
