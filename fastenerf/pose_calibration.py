@@ -24,7 +24,6 @@ from .fields.base import Field
 from .pose_guard import reset_runaways
 from .pose_refine import PoseRefiner, RowAdam
 from .pose_settle import PoseSettle
-from .pose_smoothing import check_window
 from .sampling import RayBatch, RaySampler
 
 ADAM_BETAS = (0.9, 0.999)
@@ -114,8 +113,10 @@ class PoseCalibration:
         self.gate = row_gate(cfg, prior_turn_deg) if row_adam else 0.0
         self.decay = cfg.refine_defaults()[1]
         check_knots(cfg.refine_knots, len(sampler.grid_c2w))
-        rows = int(used_rows(sampler).sum())
-        check_window(cfg.refine_settle_smooth, rows, "train config: refine_settle_smooth")
+        rows, w = int(used_rows(sampler).sum()), cfg.refine_settle_smooth
+        if w > rows:  # odd and >= 5 is the config's own check
+            why = f"{w} is longer than the {rows} grid poses it would smooth"
+            raise InputError(f"train config: refine_settle_smooth {why}")
         self.refiner = PoseRefiner(
             sampler.grid_c2w,
             used_rows(sampler),

@@ -490,7 +490,7 @@ def test_refine_settle_smooth_smooths_the_turns_once_where_the_poses_settle(scen
         tiny(refine_settle_smooth=5).validate()
     with pytest.raises(InputError, match="'refine_settle_smooth' needs refine_settle_px"):
         tiny(refine_poses=True, refine_settle_smooth=5).resolved(scene.config, "cpu")
-    with pytest.raises(InputError, match="refine_settle_smooth: smooth_poses 100001 is longer"):
+    with pytest.raises(InputError, match="refine_settle_smooth 100001 is longer than the"):
         Trainer(scene, tiny(**{**cfg, "refine_settle_smooth": 100001}), tmp_path / "long")
     assert not (tmp_path / "long").exists()
 
