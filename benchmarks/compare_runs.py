@@ -1,14 +1,15 @@
 """PSNR against training time of several error-vs-time outputs, one line per label.
 
     python -m benchmarks.compare_runs OUT.png [PANEL:]LABEL=DIR [...] [--title T]
-        [--metric psnr|pose_error_deg]
+        [--metric psnr|pose_error_deg|pose_jitter_deg]
 
 DIR is an `error_vs_time` output folder (its error_vs_time.json; the first run in it is
 plotted). LABEL may start with "PANEL:" to put that line in a panel of its own (e.g.
 "0°:refine=..." and "1°:refine=..."): one panel per distinct prefix, in order of appearance.
 The same label in two panels keeps its colour, so a variant reads across them.
 --metric pose_error_deg plots the rotation error a perturbed run's poses still have (degrees,
-log scale) in place of PSNR; a run that records none is refused.
+log scale) in place of PSNR, pose_jitter_deg its pose-to-pose part (`pose_refine`); a run that
+records none is refused.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from .plots import log_x, plt, save_figure
 METRICS = {
     "psnr": ("PSNR (dB, colour-corrected)", False),
     "pose_error_deg": ("rotation error left in the poses (°)", True),
+    "pose_jitter_deg": ("its pose-to-pose part (°)", True),
 }
 
 

@@ -820,10 +820,18 @@ def test_compare_runs_plots_the_pose_error_and_refuses_a_run_without_it(tmp_path
     out = tmp_path / "pose.png"
     assert compare_runs.main([str(out), f"r={tmp_path / 'a'}", "--metric", "pose_error_deg"]) == 0
     assert iio.imread(out).ndim == 3
+    no = tmp_path / "no.png"  # the pose-to-pose part: these points have none
+    assert compare_runs.main([str(no), f"r={tmp_path / 'a'}", "--metric", "pose_jitter_deg"]) == 2
+    assert "records no pose_jitter_deg" in capsys.readouterr().err and not no.exists()
+    for p in pts:
+        p["pose_jitter_deg"] = p["pose_error_deg"] / 2
+    (tmp_path / "a" / "error_vs_time.json").write_text(json.dumps({"runs": [{"points": pts}]}))
+    assert compare_runs.load_points(tmp_path / "a", "pose_jitter_deg") == [(1, 0.05), (2, 0.01)]
+    jit = tmp_path / "jitter.png"
+    assert compare_runs.main([str(jit), f"r={tmp_path / 'a'}", "--metric", "pose_jitter_deg"]) == 0
     for p in pts:
         del p["pose_error_deg"]
     (tmp_path / "a" / "error_vs_time.json").write_text(json.dumps({"runs": [{"points": pts}]}))
-    no = tmp_path / "no.png"
     assert compare_runs.main([str(no), f"r={tmp_path / 'a'}", "--metric", "pose_error_deg"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "records no pose_error_deg" in err[0]
